@@ -1,0 +1,92 @@
+"""Pinhole cameras in nerfstudio's convention: the one place that knows it.
+
+Camera-to-world poses are OpenGL-style (x right, y up, the camera looks along -z), as in
+nerfstudio's `Cameras` and a nerfstudio `transforms.json`. Pixel (row i, column j)
+covers [j, j+1) x [i, i+1), so its centre is (j + 0.5, i + 0.5), as nerfstudio's ray
+generation places it; a projected point lands in pixel (floor(v), floor(u)). The paper's
+rounding floor(x + 1/2) is the same rule for pixel centres at integer coordinates.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+from jaxtyping import Float
+from torch import Tensor
+
+# Points closer to the camera plane than this (scene units) count as behind it.
+MIN_DEPTH = 1e-6
+
+
+def project(
+    points: Float[Tensor, "num_points 3"],
+    camera_to_worlds: Float[Tensor, "num_views 3 4"],
+    intrinsics: Float[Tensor, "num_views 4"],
+) -> tuple[Float[Tensor, "num_views num_points 2"], Float[Tensor, "num_views num_points"]]:
+    """Project world points into every view.
+
+    Returns continuous pixel coordinates (u right, v down) and the depth along the
+    viewing direction (positive in front of the camera).
+    """
+    rotation = camera_to_worlds[:, :, :3]
+    origin = camera_to_worlds[:, :, 3]
+    # x_cam = R^T (p - o), for all views at once.
+    local = torch.einsum("vji,vmj->vmi", rotation, points[None] - origin[:, None])
+    depth = -local[..., 2]
+    safe_depth = torch.where(depth > MIN_DEPTH, depth, torch.ones_like(depth))
+    fx, fy, cx, cy = (intrinsics[:, k, None] for k in range(4))
+    u = cx + fx * local[..., 0] / safe_depth
+    v = cy - fy * local[..., 1] / safe_depth
+    return torch.stack([u, v], dim=-1), depth
+
+
+def projection_rows(
+    camera_to_worlds: Float[Tensor, "num_views 3 4"], intrinsics: Float[Tensor, "num_views 4"]
+) -> Float[Tensor, "3 num_views 4"]:
+    """Affine rows giving (u * depth, v * depth, depth) of a world point, for every view.
+
+    One matrix product then projects all points into all views; `project` is the plain form.
+    """
+    rotation_t = camera_to_worlds[:, :, :3].transpose(1, 2)  # world -> camera
+    translation = -(rotation_t @ camera_to_worlds[:, :, 3:])  # (V, 3, 1)
+    world_to_camera = torch.cat([rotation_t, translation], dim=2)  # (V, 3, 4)
+    fx, fy, cx, cy = (intrinsics[:, k, None] for k in range(4))
+    depth = -world_to_camera[:, 2]
+    u = fx * world_to_camera[:, 0] + cx * depth
+    v = -fy * world_to_camera[:, 1] + cy * depth
+    return torch.stack([u, v, depth])
+
+
+def pixel_directions(
+    pixels: Float[Tensor, "num_pixels 2"],
+    camera_to_world: Float[Tensor, "3 4"],
+    intrinsics: Float[Tensor, "4"],
+) -> Float[Tensor, "num_pixels 3"]:
+    """World-space directions (not normalised, unit depth) through image positions (u, v)."""
+    fx, fy, cx, cy = intrinsics
+    local = torch.stack(
+        [(pixels[:, 0] - cx) / fx, -(pixels[:, 1] - cy) / fy, -torch.ones_like(pixels[:, 0])], dim=-1
+    )
+    return local @ camera_to_world[:, :3].T
+
+
+def check_camera_to_world(matrix: np.ndarray, where: str, atol: float = 1e-3) -> np.ndarray:
+    """Validate a 3x4 or 4x4 rigid camera-to-world matrix and return it as 3x4 float64.
+
+    `where` names the file and field in the error so the user knows what to fix.
+    """
+    matrix = np.asarray(matrix, dtype=np.float64)
+    if matrix.shape not in ((3, 4), (4, 4)):
+        raise ValueError(f"{where}: expected a 4x4 (or 3x4) camera-to-world matrix, got shape {matrix.shape}.")
+    if not np.all(np.isfinite(matrix)):
+        raise ValueError(f"{where}: the camera-to-world matrix holds NaN or inf values.")
+    if matrix.shape == (4, 4) and not np.allclose(matrix[3], [0, 0, 0, 1], atol=atol):
+        raise ValueError(f"{where}: the last row of a 4x4 camera-to-world matrix must be [0, 0, 0, 1], got {matrix[3]}.")
+    rotation = matrix[:3, :3]
+    if not np.allclose(rotation.T @ rotation, np.eye(3), atol=atol) or np.linalg.det(rotation) < 0:
+        raise ValueError(
+            f"{where}: the rotation part is not a proper rotation (orthonormal, determinant +1); "
+            "scale, shear or a mirrored axis is not a rigid camera pose. Check the matrix convention "
+            "(camera-to-world, OpenGL axes)."
+        )
+    return matrix[:3].copy()

@@ -1,0 +1,138 @@
+"""The embedded demo scene: an analytic object rendered on the CPU, no downloads.
+
+A two-tone sphere ("the base") on which the demo edit puts a hat: a short cylinder on
+top ("the target"). Both are signed distance functions, sphere-traced in torch, so the
+demo and the tests can make a nerfstudio dataset, sketch masks and ground-truth renders
+of the edit at any pose. World frame: z up, object at the origin, radius ~0.5.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+from typing import Callable
+
+import cv2
+import numpy as np
+import torch
+from torch import Tensor
+
+from sked_ns.sketches import SketchSet, SketchView
+
+SPHERE_RADIUS = 0.5
+HAT_CENTRE = (0.0, 0.0, 0.62)
+HAT_RADIUS, HAT_HALF_HEIGHT = 0.22, 0.14
+BACKGROUND = 1.0  # white, like nerfstudio's synthetic scenes
+
+
+def sphere_sdf(points: Tensor) -> Tensor:
+    return points.norm(dim=-1) - SPHERE_RADIUS
+
+
+def hat_sdf(points: Tensor) -> Tensor:
+    """Capped cylinder standing on the sphere's top."""
+    local = points - points.new_tensor(HAT_CENTRE)
+    radial = local[..., :2].norm(dim=-1) - HAT_RADIUS
+    axial = local[..., 2].abs() - HAT_HALF_HEIGHT
+    outside = torch.stack([radial.clamp_min(0), axial.clamp_min(0)], dim=-1).norm(dim=-1)
+    return outside + torch.maximum(radial, axial).clamp_max(0)
+
+
+def edited_sdf(points: Tensor) -> Tensor:
+    return torch.minimum(sphere_sdf(points), hat_sdf(points))
+
+
+def albedo(points: Tensor) -> Tensor:
+    """Blue-ish sphere with a warm stripe, red hat: easy to tell apart in renders."""
+    on_hat = hat_sdf(points) < sphere_sdf(points)
+    stripe = (torch.sin(points[..., 0] * 9.0) > 0.6).unsqueeze(-1)
+    sphere = torch.where(stripe, points.new_tensor([0.95, 0.75, 0.25]), points.new_tensor([0.25, 0.45, 0.85]))
+    return torch.where(on_hat.unsqueeze(-1), points.new_tensor([0.85, 0.15, 0.15]), sphere)
+
+
+def look_at(position: np.ndarray, target: np.ndarray = np.zeros(3)) -> np.ndarray:
+    """3x4 OpenGL camera-to-world at `position` looking at `target`, z up."""
+    backward = position - target
+    backward = backward / np.linalg.norm(backward)
+    right = np.cross([0.0, 0.0, 1.0], backward)
+    right = right / np.linalg.norm(right)
+    up = np.cross(backward, right)
+    return np.stack([right, up, backward, position], axis=1)
+
+
+def orbit_pose(azimuth_deg: float, elevation_deg: float, radius: float) -> np.ndarray:
+    azimuth, elevation = math.radians(azimuth_deg), math.radians(elevation_deg)
+    position = radius * np.array(
+        [math.cos(elevation) * math.sin(azimuth), -math.cos(elevation) * math.cos(azimuth), math.sin(elevation)]
+    )
+    return look_at(position)
+
+
+def render(
+    sdf: Callable[[Tensor], Tensor], camera_to_world: np.ndarray, focal: float, width: int, height: int
+) -> dict[str, Tensor]:
+    """Sphere-trace one view: rgb (h, w, 3), hit mask (h, w) and world hit points (h, w, 3)."""
+    pose = torch.as_tensor(camera_to_world, dtype=torch.float32)
+    cols, rows = torch.meshgrid(torch.arange(width) + 0.5, torch.arange(height) + 0.5, indexing="xy")
+    local = torch.stack([(cols - width / 2) / focal, -(rows - height / 2) / focal, -torch.ones_like(cols)], dim=-1)
+    directions = local @ pose[:, :3].T
+    directions = directions / directions.norm(dim=-1, keepdim=True)
+    origin = pose[:, 3].expand_as(directions)
+    travelled = torch.zeros(directions.shape[:-1])
+    for _ in range(96):
+        distance = sdf(origin + travelled[..., None] * directions)
+        travelled = travelled + distance.clamp_max(1.0)
+    points = origin + travelled[..., None] * directions
+    hit = sdf(points).abs() < 1e-3
+    # Lambertian shading under a head light and a sky light; normals by central differences.
+    eps = 1e-3
+    offsets = torch.eye(3) * eps
+    normal = torch.stack([sdf(points + o) - sdf(points - o) for o in offsets], dim=-1)
+    normal = normal / normal.norm(dim=-1, keepdim=True).clamp_min(1e-8)
+    light = (0.55 * (-directions * normal).sum(-1).clamp_min(0) + 0.45 * (0.5 + 0.5 * normal[..., 2]))[..., None]
+    rgb = torch.where(hit[..., None], albedo(points) * light, torch.full_like(points, BACKGROUND))
+    return {"rgb": rgb.clamp(0, 1), "hit": hit, "points": points}
+
+
+def demo_camera_poses(num_views: int, radius: float = 2.4) -> list[np.ndarray]:
+    """Training views of the demo dataset: two rings around the object."""
+    poses = []
+    for index in range(num_views):
+        elevation = 15.0 if index % 2 == 0 else 40.0
+        poses.append(orbit_pose(360.0 * index / num_views, elevation, radius))
+    return poses
+
+
+def write_demo_dataset(folder: Path, num_views: int = 24, size: int = 96, sdf=sphere_sdf) -> Path:
+    """A nerfstudio dataset (transforms.json + PNGs) of the demo object."""
+    folder = Path(folder)
+    (folder / "images").mkdir(parents=True, exist_ok=True)
+    focal = 1.2 * size
+    frames = []
+    for index, pose in enumerate(demo_camera_poses(num_views)):
+        image = render(sdf, pose, focal, size, size)["rgb"]
+        name = f"images/frame_{index:03d}.png"
+        cv2.imwrite(str(folder / name), cv2.cvtColor((image.numpy() * 255).round().astype(np.uint8), cv2.COLOR_RGB2BGR))
+        frames.append({"file_path": name, "transform_matrix": np.concatenate([pose, [[0, 0, 0, 1]]]).tolist()})
+    meta = {"fl_x": focal, "fl_y": focal, "cx": size / 2, "cy": size / 2, "w": size, "h": size, "frames": frames}
+    path = folder / "transforms.json"
+    path.write_text(json.dumps(meta, indent=2))
+    return path
+
+
+def demo_sketch_set(size: int = 128, views=((20.0, 20.0), (110.0, 30.0))) -> SketchSet:
+    """Sketches of the hat seen from two views: the silhouette of the hat where it is visible.
+
+    Poses are in the demo dataset's data frame (the world frame above).
+    """
+    focal = 1.2 * size
+    sketch_views = []
+    for azimuth, elevation in views:
+        pose = orbit_pose(azimuth, elevation, 2.4)
+        hat_hits = render(hat_sdf, pose, focal, size, size)["hit"].numpy()
+        mask = cv2.dilate(hat_hits.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)
+        sketch_views.append(
+            SketchView(mask=mask, camera_to_world=pose, fl_x=focal, fl_y=focal, cx=size / 2, cy=size / 2, name=f"demo@{azimuth:g}")
+        )
+    return SketchSet(views=sketch_views, frame="data")

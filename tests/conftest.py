@@ -1,0 +1,56 @@
+"""Shared helpers for the tests: random cameras, masks and sketch views."""
+
+from __future__ import annotations
+
+import os
+
+import numpy as np
+import pytest
+
+from sked_ns.demo_scene import look_at
+from sked_ns.sketches import SketchView
+
+# No test may reach a model hub.
+os.environ.setdefault("HF_HUB_OFFLINE", "1")
+os.environ.setdefault("TRANSFORMERS_OFFLINE", "1")
+
+
+def random_pose(rng: np.random.Generator, radius_range=(1.5, 3.0)) -> np.ndarray:
+    """A camera on a random sphere point looking at a random point near the origin."""
+    direction = rng.normal(size=3)
+    direction /= np.linalg.norm(direction)
+    # Keep away from the look-at singularity at the poles.
+    direction[2] = np.clip(direction[2], -0.9, 0.9)
+    position = direction / np.linalg.norm(direction) * rng.uniform(*radius_range)
+    return look_at(position, rng.uniform(-0.2, 0.2, size=3))
+
+
+def random_blob_mask(rng: np.random.Generator, width: int, height: int, blobs: int = 2) -> np.ndarray:
+    """A few random filled ellipses."""
+    rows, cols = np.mgrid[0:height, 0:width]
+    mask = np.zeros((height, width), dtype=bool)
+    for _ in range(blobs):
+        cy, cx = rng.uniform(0, height), rng.uniform(0, width)
+        ry, rx = rng.uniform(1, height / 4), rng.uniform(1, width / 4)
+        mask |= ((rows + 0.5 - cy) / ry) ** 2 + ((cols + 0.5 - cx) / rx) ** 2 <= 1
+    if not mask.any():
+        mask[rng.integers(height), rng.integers(width)] = True
+    return mask
+
+
+def random_view(rng: np.random.Generator, width: int, height: int, name: str = "") -> SketchView:
+    focal = rng.uniform(0.8, 1.5) * width
+    return SketchView(
+        mask=random_blob_mask(rng, width, height),
+        camera_to_world=random_pose(rng),
+        fl_x=focal,
+        fl_y=focal * rng.uniform(0.9, 1.1),
+        cx=width / 2 + rng.uniform(-3, 3),
+        cy=height / 2 + rng.uniform(-3, 3),
+        name=name,
+    )
+
+
+@pytest.fixture
+def rng() -> np.random.Generator:
+    return np.random.default_rng(0)

@@ -1,0 +1,99 @@
+"""Edit box: the LP box equals a dense sampling of the frustum intersection; nerfacc layout."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+from nerfacc import OccGridEstimator
+
+from sked_ns.cameras import project
+from sked_ns.demo_scene import orbit_pose
+from sked_ns.edit_box import EditBox, compute_edit_box, occupancy_grid_mask
+from sked_ns.sketches import SketchView
+
+
+def _cube_view(azimuth, elevation, cube_centre, half, size=64, focal=80.0, name=""):
+    """A view whose mask is the projected footprint of a cube's corners' bounding box."""
+    pose = orbit_pose(azimuth, elevation, 3.0)
+    corners = torch.tensor(
+        [[cube_centre[0] + sx * half, cube_centre[1] + sy * half, cube_centre[2] + sz * half]
+         for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], dtype=torch.float64
+    )
+    pixels, _ = project(corners, torch.tensor(pose[None]), torch.tensor([[focal, focal, size / 2, size / 2]], dtype=torch.float64))
+    u0, v0 = pixels[0].floor().min(0).values.int().tolist()
+    u1, v1 = pixels[0].floor().max(0).values.int().tolist()
+    mask = np.zeros((size, size), bool)
+    mask[max(v0, 0) : v1 + 1, max(u0, 0) : u1 + 1] = True
+    return SketchView(mask=mask, camera_to_world=pose, fl_x=focal, fl_y=focal, cx=size / 2, cy=size / 2, name=name)
+
+
+def _inside_all_frusta(points, views):
+    inside = torch.ones(len(points), dtype=torch.bool)
+    for view in views:
+        u0, v0, u1, v1 = view.bounding_box()
+        pixels, depth = project(points, torch.tensor(view.camera_to_world[None]), torch.tensor(view.intrinsics[None]))
+        u, v = pixels[0].unbind(-1)
+        inside &= (depth[0] > 1e-3) & (u >= u0) & (u <= u1) & (v >= v0) & (v <= v1)
+    return inside
+
+
+@pytest.mark.parametrize("num_views", [2, 3])
+def test_box_matches_dense_sampling_of_the_intersection(num_views):
+    centre, half = (0.1, -0.2, 0.3), 0.15
+    views = [_cube_view(a, e, centre, half) for a, e in [(0, 10), (80, 25), (200, 40)][:num_views]]
+    box = compute_edit_box(views)
+    assert torch.all(box.contains(torch.tensor([centre])))
+    # Dense reference: a fine grid over (and beyond) the box, kept where inside every frustum.
+    lo, hi = box.min - 0.05, box.max + 0.05
+    axes = [torch.linspace(float(lo[k]), float(hi[k]), 90, dtype=torch.float64) for k in range(3)]
+    grid = torch.stack(torch.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
+    inside = grid[_inside_all_frusta(grid, views)]
+    spacing = max((hi - lo) / 89)
+    np.testing.assert_allclose(inside.min(0).values.numpy(), box.min, atol=1.5 * spacing)
+    np.testing.assert_allclose(inside.max(0).values.numpy(), box.max, atol=1.5 * spacing)
+
+
+def test_every_contour_counts():
+    view_a = _cube_view(0, 10, (0, 0, 0), 0.1)
+    second = view_a.mask.copy()
+    second[2:5, 2:5] = True  # a second stroke far to the top-left
+    view_b = SketchView(second, view_a.camera_to_world, view_a.fl_x, view_a.fl_y, view_a.cx, view_a.cy)
+    side = _cube_view(90, 10, (0, 0, 0), 0.6)
+    assert np.all(compute_edit_box([view_b, side]).size >= compute_edit_box([view_a, side]).size - 1e-9)
+    assert compute_edit_box([view_b, side]).size.max() > compute_edit_box([view_a, side]).size.max() + 0.05
+
+
+def test_disjoint_sketches_are_named():
+    left = _cube_view(0, 10, (-0.8, 0, 0), 0.05, name="left.png")
+    right = _cube_view(0, 60, (0.8, 0, 0), 0.05, name="right.png")
+    with pytest.raises(ValueError, match=r"do not intersect.*left.png and right.png"):
+        compute_edit_box([left, right])
+
+
+def test_parallel_views_are_unbounded_unless_clipped():
+    a = _cube_view(0, 10, (0, 0, 0), 0.1)
+    b = SketchView(a.mask, a.camera_to_world + np.array([[0, 0, 0, 0.01]] * 3), a.fl_x, a.fl_y, a.cx, a.cy)
+    with pytest.raises(ValueError, match="unbounded"):
+        compute_edit_box([a, b])
+    box = compute_edit_box([a, b], scene_box=np.array([[-1.0] * 3, [1.0] * 3]))
+    assert np.all(box.max <= 1.0) and np.all(box.min >= -1.0)
+
+
+@pytest.mark.parametrize("resolution, levels", [(16, 1), ([12, 8, 10], 2), (32, 3)])
+def test_occupancy_mask_uses_nerfacc_layout(resolution, levels):
+    roi = [-1.0, -0.5, -0.8, 1.0, 1.5, 0.6]
+    estimator = OccGridEstimator(roi_aabb=roi, resolution=resolution, levels=levels)
+    box = EditBox(min=np.array([-0.3, 0.2, -0.1]), max=np.array([0.25, 0.9, 0.05]))
+    mask = occupancy_grid_mask(box, roi, resolution, levels)
+    assert mask.shape == estimator.binaries.shape and mask.dtype == estimator.binaries.dtype
+    # nerfacc's own cell positions: x = aabb_min + (grid_coords + offset) / res * extent.
+    res = estimator.resolution.double()
+    for level in range(levels):
+        aabb = estimator.aabbs[level].double()
+        start = aabb[:3] + estimator.grid_coords.double() / res * (aabb[3:] - aabb[:3])
+        end = aabb[:3] + (estimator.grid_coords.double() + 1) / res * (aabb[3:] - aabb[:3])
+        overlaps = ((start <= torch.tensor(box.max)) & (end > torch.tensor(box.min))).all(-1)
+        assert torch.equal(mask[level].reshape(-1), overlaps)
+        assert overlaps.any()
+    estimator.binaries |= mask  # drops straight into the estimator

@@ -1,0 +1,89 @@
+"""SKED losses: hand-computed values, and finite values and gradients at the extremes."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from sked_ns.losses import ALPHA_EPS, PROBABILITY_EPS, preservation_loss, silhouette_loss, sparsity_loss
+
+DELTA = 0.07
+
+
+def test_preservation_loss_by_hand():
+    # Sample 0: base occupied (density 10 > 5), edit alpha = 0.5, colours differ, w = 0.5.
+    # Sample 1: base empty, edit density 0 (alpha 0), colours ignored, w = 1.
+    density_edit = torch.tensor([[math.log(2) / DELTA], [0.0]])
+    density_base = torch.tensor([[10.0], [0.0]])
+    rgb_edit = torch.tensor([[0.5, 0.5, 0.5], [1.0, 0.0, 0.0]])
+    rgb_base = torch.tensor([[0.4, 0.3, 0.7], [0.0, 1.0, 0.0]])
+    weight = torch.tensor([[0.5], [1.0]])
+    loss = preservation_loss(density_edit, rgb_edit, density_base, rgb_base, weight, delta=DELTA, lambda_colour=5.0)
+    p0 = PROBABILITY_EPS + (1 - 2 * PROBABILITY_EPS) * 0.5
+    p1 = PROBABILITY_EPS
+    expected = (0.5 * (-math.log(p0) + 5.0 * (0.01 + 0.04 + 0.04)) + 1.0 * -math.log(1 - p1)) / 2
+    assert loss.item() == pytest.approx(expected, rel=1e-6)
+
+
+def test_preservation_loss_is_zero_weighted_on_the_sketch():
+    density = torch.rand(8, 1) * 50
+    loss = preservation_loss(density, torch.rand(8, 3), torch.rand(8, 1) * 50, torch.rand(8, 3), torch.zeros(8, 1))
+    assert loss.item() == 0.0
+
+
+def test_silhouette_loss_by_hand():
+    accumulation = torch.tensor([[[1.0, 0.5], [0.0, 0.25]]])
+    masks = torch.tensor([[[1.0, 1.0], [0.0, 1.0]]])
+    squash = lambda a: math.log(ALPHA_EPS + (1 - ALPHA_EPS) * a)  # noqa: E731
+    expected = -(squash(1.0) + squash(0.5) + squash(0.25)) / 4
+    assert silhouette_loss(accumulation, masks).item() == pytest.approx(expected, rel=1e-6)
+    assert silhouette_loss(torch.ones(1, 2, 2), torch.ones(1, 2, 2)).item() == 0.0
+
+
+def test_sparsity_loss_by_hand():
+    assert sparsity_loss(torch.full((3, 3), 0.5)).item() == pytest.approx(math.log(2), rel=1e-6)
+    assert sparsity_loss(torch.tensor([0.0, 1.0])).item() < 2e-3
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float16])
+@pytest.mark.parametrize("density_value", [0.0, 1e-6, 5.0, 1e6, math.inf])
+def test_preservation_loss_finite_with_gradient(dtype, density_value):
+    density_value = min(density_value, torch.finfo(dtype).max) if math.isfinite(density_value) else density_value
+    density_edit = torch.full((4, 6, 1), density_value, dtype=dtype, requires_grad=True)
+    rgb_edit = torch.rand(4, 6, 3, dtype=dtype, requires_grad=True)
+    density_base = torch.tensor([0.0, 6e4, 4.9, 5.1, 0.0, 1e3], dtype=dtype).reshape(1, 6, 1).expand(4, 6, 1)
+    weight = torch.rand(4, 6, 1, dtype=dtype)
+    loss = preservation_loss(density_edit, rgb_edit, density_base, torch.rand(4, 6, 3, dtype=dtype), weight)
+    loss.backward()
+    assert torch.isfinite(loss)
+    assert torch.isfinite(density_edit.grad).all() and torch.isfinite(rgb_edit.grad).all()
+
+
+def test_empty_region_still_pulls_density_up():
+    # An occupied base sample where the edit is empty must get a push (no dead clamp).
+    density_edit = torch.zeros(1, 1, requires_grad=True)
+    preservation_loss(density_edit, torch.zeros(1, 3), torch.full((1, 1), 100.0), torch.zeros(1, 3), torch.ones(1, 1)).backward()
+    assert density_edit.grad.item() < 0
+    accumulation = torch.zeros(1, 4, 4, requires_grad=True)
+    silhouette_loss(accumulation, torch.ones(1, 4, 4)).backward()
+    assert (accumulation.grad < 0).all() and torch.isfinite(accumulation.grad).all()
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float16])
+@pytest.mark.parametrize("alpha", [0.0, 1.0, 0.5])
+@pytest.mark.parametrize("mask_fill", [0.0, 1.0])
+def test_silhouette_and_sparsity_finite_at_extremes(dtype, alpha, mask_fill):
+    accumulation = torch.full((2, 5, 5), alpha, dtype=dtype, requires_grad=True)
+    masks = torch.full((2, 5, 5), mask_fill, dtype=dtype)
+    total = silhouette_loss(accumulation, masks) + sparsity_loss(accumulation)
+    total.backward()
+    assert torch.isfinite(total) and torch.isfinite(accumulation.grad).all()
+    if mask_fill == 0.0:  # empty masks: nothing to fill
+        assert silhouette_loss(accumulation, masks).item() == 0.0
+
+
+def test_no_samples_gives_zero():
+    empty = torch.zeros(0, 1)
+    assert preservation_loss(empty, torch.zeros(0, 3), empty, torch.zeros(0, 3), empty).item() == 0.0

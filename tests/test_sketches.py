@@ -1,0 +1,156 @@
+"""Sketch sets: round trip, frames, scribble filling and every bad input."""
+
+from __future__ import annotations
+
+import json
+
+import cv2
+import numpy as np
+import pytest
+
+from sked_ns.sketches import (
+    DataparserTransform,
+    SketchSet,
+    SketchView,
+    fill_scribbles,
+    load_sketch_set,
+    mask_from_image,
+    save_sketch_set,
+)
+from conftest import random_view
+
+
+@pytest.fixture
+def sketch_folder(tmp_path, rng):
+    views = [random_view(rng, 64, 48, f"v{i}") for i in range(3)]
+    save_sketch_set(SketchSet(views=views, frame="data"), tmp_path / "set")
+    return tmp_path / "set", views
+
+
+def _edit_json(folder, change):
+    path = folder / "sketches.json"
+    meta = json.loads(path.read_text())
+    change(meta)
+    path.write_text(json.dumps(meta))
+
+
+def test_round_trip(sketch_folder):
+    folder, views = sketch_folder
+    loaded = load_sketch_set(folder)
+    assert loaded.frame == "data" and len(loaded.views) == 3
+    for original, again in zip(views, loaded.views):
+        np.testing.assert_array_equal(original.mask, again.mask)
+        np.testing.assert_allclose(original.camera_to_world, again.camera_to_world, atol=1e-12)
+        assert (again.fl_x, again.fl_y, again.cx, again.cy) == pytest.approx(
+            (original.fl_x, original.fl_y, original.cx, original.cy)
+        )
+        assert (again.width, again.height) == (64, 48)
+
+
+def test_frame_defaults_to_data_and_model_frame_needs_no_transform(sketch_folder):
+    folder, _ = sketch_folder
+    _edit_json(folder, lambda meta: meta.pop("frame"))
+    loaded = load_sketch_set(folder)
+    assert loaded.frame == "data"
+    with pytest.raises(ValueError, match="dataparser"):
+        loaded.in_model_frame(None)
+    _edit_json(folder, lambda meta: meta.update(frame="model"))
+    model = load_sketch_set(folder)
+    assert model.in_model_frame(None) is model
+
+
+def test_data_frame_applies_the_dataparser_transform(sketch_folder):
+    folder, views = sketch_folder
+    angle = 0.3
+    rotation = np.array([[np.cos(angle), -np.sin(angle), 0], [np.sin(angle), np.cos(angle), 0], [0, 0, 1]])
+    transform = DataparserTransform(np.concatenate([rotation, [[0.1], [-0.2], [0.3]]], axis=1), scale=0.5)
+    model = load_sketch_set(folder).in_model_frame(transform)
+    assert model.frame == "model"
+    for original, moved in zip(views, model.views):
+        # A point fixed to the camera moves with it: p_model = (T p_data) * scale.
+        local = np.array([0.1, -0.2, -1.0])
+        data_point = original.camera_to_world[:, :3] @ local + original.camera_to_world[:, 3]
+        expected = (rotation @ data_point + [0.1, -0.2, 0.3]) * 0.5
+        scaled_local = local * 0.5
+        np.testing.assert_allclose(moved.camera_to_world[:, :3] @ scaled_local + moved.camera_to_world[:, 3], expected)
+
+
+def test_dataparser_transform_reads_nerfstudio_json(tmp_path):
+    path = tmp_path / "dataparser_transforms.json"
+    path.write_text(json.dumps({"transform": np.eye(4)[:3].tolist(), "scale": 0.25}))
+    assert DataparserTransform.from_json(path).scale == 0.25
+    path.write_text("{}")
+    with pytest.raises(ValueError, match="dataparser_transforms.json"):
+        DataparserTransform.from_json(path)
+
+
+def test_closed_scribble_is_filled_and_blob_is_unchanged():
+    ring = np.zeros((40, 40), np.uint8)
+    cv2.circle(ring, (20, 20), 12, 1, thickness=2)
+    filled = fill_scribbles(ring.astype(bool))
+    assert filled[20, 20] and filled.sum() > 2 * ring.sum()
+    blob = np.zeros((40, 40), bool)
+    blob[5:15, 8:30] = True
+    np.testing.assert_array_equal(fill_scribbles(blob), blob)
+
+
+def test_rgba_masks_use_alpha_and_gray_masks_use_brightness():
+    rgba = np.zeros((4, 4, 4), np.uint8)
+    rgba[1:3, 1:3] = [0, 0, 0, 255]  # black, opaque blob on transparent (authors' style)
+    assert mask_from_image(rgba).sum() == 4
+    gray = np.zeros((4, 4), np.uint8)
+    gray[0, :] = 255
+    assert mask_from_image(gray).sum() == 4
+
+
+def test_saving_never_overwrites(sketch_folder):
+    folder, views = sketch_folder
+    before = (folder / "sketches.json").read_bytes()
+    with pytest.raises(FileExistsError, match="sketches.json"):
+        save_sketch_set(SketchSet(views=views[:2]), folder)
+    assert (folder / "sketches.json").read_bytes() == before
+
+
+@pytest.mark.parametrize(
+    "change, error, message",
+    [
+        (lambda m, f: m["views"][1].update(mask_path="masks/nope.png"), FileNotFoundError, r"nope.png.*not found"),
+        (lambda m, f: (f / "masks/view_01.png").write_text("not a png"), ValueError, r"view_01.png.*cannot read"),
+        (lambda m, f: m["views"][0].update(w=65), ValueError, r"view_00.png.*64x48.*w=65"),
+        (lambda m, f: cv2.imwrite(str(f / "masks/view_02.png"), np.zeros((48, 64), np.uint8)), ValueError, r"view_02.png.*empty"),
+        (lambda m, f: m.update(views=m["views"][:1]), ValueError, r"sketches.json.*at least two"),
+        (lambda m, f: m["views"][1]["transform_matrix"][0].__setitem__(3, float("nan")), ValueError, r"views\[1\].*transform_matrix.*NaN"),
+        (lambda m, f: m["views"][0]["transform_matrix"][0].__setitem__(0, 2.0), ValueError, r"views\[0\].*transform_matrix.*rotation"),
+        (lambda m, f: m.update(frame="world"), ValueError, r"sketches.json.*unknown 'frame' 'world'"),
+        (lambda m, f: m["views"][2].pop("fl_x"), ValueError, r"views\[2\].*'fl_x'"),
+        (lambda m, f: m["views"][2].update(fl_y=-1), ValueError, r"views\[2\].*'fl_y'.*positive"),
+    ],
+    ids=["missing-mask", "unreadable-mask", "size-mismatch", "empty-mask", "one-view", "nan-pose", "scaled-pose",
+         "unknown-frame", "missing-field", "negative-focal"],
+)
+def test_bad_input_names_the_file_and_field(sketch_folder, change, error, message):
+    folder, _ = sketch_folder
+    _edit_json(folder, lambda meta: change(meta, folder))
+    with pytest.raises(error, match=message):
+        load_sketch_set(folder)
+
+
+def test_missing_or_broken_json(tmp_path):
+    with pytest.raises(FileNotFoundError, match="sketches.json"):
+        load_sketch_set(tmp_path)
+    (tmp_path / "sketches.json").write_text("{oops")
+    with pytest.raises(ValueError, match="not valid JSON"):
+        load_sketch_set(tmp_path)
+
+
+def test_sketch_set_needs_two_views(rng):
+    with pytest.raises(ValueError, match="at least two"):
+        SketchSet(views=[random_view(rng, 8, 8)])
+
+
+def test_bounding_box_covers_every_contour():
+    mask = np.zeros((20, 30), bool)
+    mask[2:4, 3:5] = True
+    mask[15:18, 20:27] = True
+    view = SketchView(mask=mask, camera_to_world=np.eye(4)[:3], fl_x=10, fl_y=10, cx=15, cy=10)
+    assert view.bounding_box() == (3, 2, 27, 18)
