@@ -18,6 +18,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from sked_ns.random_views import look_at
 from sked_ns.sketches import SketchSet, SketchView
 
 SPHERE_RADIUS = 0.5
@@ -51,14 +52,14 @@ def albedo(points: Tensor) -> Tensor:
     return torch.where(on_hat.unsqueeze(-1), points.new_tensor([0.85, 0.15, 0.15]), sphere)
 
 
-def look_at(position: np.ndarray, target: np.ndarray = np.zeros(3)) -> np.ndarray:
-    """3x4 OpenGL camera-to-world at `position` looking at `target`, z up."""
-    backward = position - target
-    backward = backward / np.linalg.norm(backward)
-    right = np.cross([0.0, 0.0, 1.0], backward)
-    right = right / np.linalg.norm(right)
-    up = np.cross(backward, right)
-    return np.stack([right, up, backward, position], axis=1)
+def surface_colour(points: Tensor, sdf: Callable[[Tensor], Tensor] = edited_sdf) -> Tensor:
+    """Albedo under a fixed sun and sky: a function of position only, so a NeRF can match it."""
+    offsets = torch.eye(3, dtype=points.dtype) * 1e-3
+    normal = torch.stack([sdf(points + o) - sdf(points - o) for o in offsets], dim=-1)
+    normal = normal / normal.norm(dim=-1, keepdim=True).clamp_min(1e-8)
+    sun = points.new_tensor([0.4, -0.5, 0.77])
+    light = 0.35 + 0.4 * (normal * sun).sum(-1).clamp_min(0) + 0.25 * (0.5 + 0.5 * normal[..., 2])
+    return (albedo(points) * light[..., None]).clamp(0, 1)
 
 
 def orbit_pose(azimuth_deg: float, elevation_deg: float, radius: float) -> np.ndarray:
@@ -66,7 +67,7 @@ def orbit_pose(azimuth_deg: float, elevation_deg: float, radius: float) -> np.nd
     position = radius * np.array(
         [math.cos(elevation) * math.sin(azimuth), -math.cos(elevation) * math.cos(azimuth), math.sin(elevation)]
     )
-    return look_at(position)
+    return look_at(position, np.zeros(3))
 
 
 def render(
@@ -85,13 +86,7 @@ def render(
         travelled = travelled + distance.clamp_max(1.0)
     points = origin + travelled[..., None] * directions
     hit = sdf(points).abs() < 1e-3
-    # Lambertian shading under a head light and a sky light; normals by central differences.
-    eps = 1e-3
-    offsets = torch.eye(3) * eps
-    normal = torch.stack([sdf(points + o) - sdf(points - o) for o in offsets], dim=-1)
-    normal = normal / normal.norm(dim=-1, keepdim=True).clamp_min(1e-8)
-    light = (0.55 * (-directions * normal).sum(-1).clamp_min(0) + 0.45 * (0.5 + 0.5 * normal[..., 2]))[..., None]
-    rgb = torch.where(hit[..., None], albedo(points) * light, torch.full_like(points, BACKGROUND))
+    rgb = torch.where(hit[..., None], surface_colour(points, sdf), torch.full_like(points, BACKGROUND))
     return {"rgb": rgb.clamp(0, 1), "hit": hit, "points": points}
 
 

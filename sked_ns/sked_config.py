@@ -3,17 +3,18 @@
 from __future__ import annotations
 
 from nerfstudio.configs.base_config import ViewerConfig
-from nerfstudio.data.datamanagers.base_datamanager import VanillaDataManagerConfig
 from nerfstudio.data.dataparsers.nerfstudio_dataparser import NerfstudioDataParserConfig
 from nerfstudio.engine.optimizers import AdamOptimizerConfig
 from nerfstudio.engine.schedulers import ExponentialDecaySchedulerConfig
-from nerfstudio.engine.trainer import TrainerConfig
-from nerfstudio.pipelines.base_pipeline import VanillaPipelineConfig
 from nerfstudio.plugins.types import MethodSpecification
 
+from sked_ns.sked_datamanager import SkedDataManagerConfig
 from sked_ns.sked_model import SkedModelConfig
+from sked_ns.sked_pipeline import SkedPipelineConfig
+from sked_ns.sked_trainer import SkedTrainerConfig
 
 MAX_ITERATIONS = 10_000
+LEARNING_RATE = 5e-3  # method.md: Adam 5e-3, hash grids 10x
 
 
 def _adam(lr: float) -> dict:
@@ -25,17 +26,23 @@ def _adam(lr: float) -> dict:
 
 
 sked_method = MethodSpecification(
-    config=TrainerConfig(
+    config=SkedTrainerConfig(
         method_name="sked",
-        steps_per_eval_batch=500,
-        steps_per_save=1000,
+        steps_per_eval_batch=0,
+        steps_per_eval_image=1000,
+        steps_per_eval_all_images=0,
+        steps_per_save=500,
         max_num_iterations=MAX_ITERATIONS,
         mixed_precision=True,
-        pipeline=VanillaPipelineConfig(
-            datamanager=VanillaDataManagerConfig(dataparser=NerfstudioDataParserConfig()),
+        pipeline=SkedPipelineConfig(
+            datamanager=SkedDataManagerConfig(dataparser=NerfstudioDataParserConfig()),
             model=SkedModelConfig(),
         ),
-        optimizers={"proposal_networks": _adam(5e-3), "fields": _adam(5e-2), "camera_opt": _adam(1e-4)},
+        optimizers={
+            "proposal_networks": _adam(LEARNING_RATE),
+            "fields": _adam(LEARNING_RATE),
+            "hash_grids": _adam(10 * LEARNING_RATE),
+        },
         viewer=ViewerConfig(num_rays_per_chunk=1 << 15),
         vis="viewer",
     ),

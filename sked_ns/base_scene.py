@@ -1,0 +1,122 @@
+"""The base scene: find it from what the user typed, check it, and read its weights.
+
+One function turns `--load-dir` into a checked base: the run folder (holding config.yml),
+its `nerfstudio_models` folder or one `.ckpt` file are all accepted. The base's files are
+only ever read.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Dict, Optional
+
+import torch
+import yaml
+from torch import Tensor
+
+SUPPORTED_METHODS = {
+    "nerfacto": "nerfacto",
+    "nerfacto-big": "nerfacto",
+    "nerfacto-huge": "nerfacto",
+    "instant-ngp": "instant-ngp",
+    "instant-ngp-bounded": "instant-ngp",
+    "sked": "sked",  # an edited scene: resume it, or edit it again (progressive editing)
+}
+
+
+@dataclass(frozen=True)
+class BaseScene:
+    """A trained nerfstudio run to edit (or an edit to resume)."""
+
+    run_dir: Path
+    """Folder holding config.yml."""
+    checkpoint: Path
+    """The latest (or chosen) step-*.ckpt."""
+    config: object
+    """The run's TrainerConfig, read from config.yml."""
+
+    @property
+    def method(self) -> str:
+        return str(self.config.method_name)
+
+    @property
+    def family(self) -> str:
+        """nerfacto, instant-ngp or sked."""
+        return SUPPORTED_METHODS[self.method]
+
+    @property
+    def model_config(self):
+        return self.config.pipeline.model
+
+
+def _latest_checkpoint(models_dir: Path, step: Optional[int]) -> Path:
+    checkpoints = sorted(models_dir.glob("step-*.ckpt"))
+    if not checkpoints:
+        raise FileNotFoundError(f"{models_dir}: no step-*.ckpt checkpoint here. Point --load-dir at a trained run.")
+    if step is None:
+        return max(checkpoints, key=lambda path: int(path.stem.split("-")[1]))
+    chosen = models_dir / f"step-{step:09d}.ckpt"
+    if not chosen.exists():
+        raise FileNotFoundError(f"{chosen}: no checkpoint for --load-step {step}.")
+    return chosen
+
+
+def resolve_base(load_dir: Path, step: Optional[int] = None) -> BaseScene:
+    """Accept `<run>`, `<run>/nerfstudio_models` or a `.ckpt` file; read and check config.yml."""
+    path = Path(load_dir).expanduser()
+    if not path.exists():
+        raise FileNotFoundError(f"--load-dir {path}: no such file or folder.")
+    if path.is_file():
+        models_dir, checkpoint = path.parent, path
+    elif (path / "config.yml").exists():
+        models_dir, checkpoint = path / "nerfstudio_models", None
+    else:
+        models_dir, checkpoint = path, None
+    run_dir = models_dir.parent
+    config_path = run_dir / "config.yml"
+    if not config_path.exists():
+        raise FileNotFoundError(
+            f"{config_path}: missing. --load-dir must be a nerfstudio run folder (with config.yml) or its "
+            "nerfstudio_models folder; the base's config.yml says which model it is."
+        )
+    if checkpoint is None:
+        if not models_dir.is_dir():
+            raise FileNotFoundError(f"{models_dir}: missing; the run at {run_dir} has no saved checkpoints.")
+        checkpoint = _latest_checkpoint(models_dir, step)
+    try:
+        config = yaml.load(config_path.read_text(), Loader=yaml.Loader)
+        method = config.method_name
+    except Exception as error:  # yaml of nerfstudio configs imports arbitrary modules
+        raise ValueError(f"{config_path}: cannot read this nerfstudio config ({error}).") from error
+    if method not in SUPPORTED_METHODS:
+        raise ValueError(
+            f"{config_path}: the base was trained with '{method}'; sked edits "
+            f"{', '.join(sorted(m for m in SUPPORTED_METHODS if m != 'sked'))} scenes (a NerfactoField)."
+        )
+    return BaseScene(run_dir=run_dir, checkpoint=checkpoint, config=config)
+
+
+def read_model_state(checkpoint: Path) -> Dict[str, Tensor]:
+    """The model's weights from a nerfstudio checkpoint, keys without the `_model.` prefix."""
+    import sked_ns.compat  # noqa: F401  (numpy scalars in nerfstudio checkpoints)
+
+    try:
+        state = torch.load(checkpoint, map_location="cpu")
+        pipeline = state["pipeline"]
+    except Exception as error:
+        raise ValueError(f"{checkpoint}: not a readable nerfstudio checkpoint ({error}).") from error
+    prefix = "_model."
+    model_state = {}
+    for key, value in pipeline.items():
+        key = key[len("module.") :] if key.startswith("module.") else key
+        if key.startswith(prefix):
+            model_state[key[len(prefix) :]] = value
+    if not model_state:
+        raise ValueError(f"{checkpoint}: holds no model weights (no '_model.' keys).")
+    return model_state
+
+
+def uses_tcnn(state: Dict[str, Tensor], prefix: str = "field.") -> bool:
+    """tiny-cuda-nn modules store one flat `params` tensor; the torch ones named layers."""
+    return any(key.startswith(prefix) and key.endswith(".params") for key in state)

@@ -1,0 +1,52 @@
+"""Build and run an edit from Python, exactly as `ns-train sked` does (used by the demo and tests)."""
+
+from __future__ import annotations
+
+import copy
+from pathlib import Path
+from typing import Optional
+
+from sked_ns.sked_config import sked_method
+from sked_ns.sked_trainer import SkedTrainerConfig
+
+
+def edit_config(
+    base: Path, data: Path, sketches: Path, output_dir: Path, *, prompt: Optional[str] = None,
+    guidance: str = "reference", iterations: int = 100, guidance_resolution: int = 32,
+    silhouette_resolution: int = 24, device: str = "cpu", steps_per_save: int = 50,
+) -> SkedTrainerConfig:
+    """The `ns-train sked --load-dir BASE --data DATA --sketches SKETCHES ...` config."""
+    from nerfstudio.data.dataparsers.nerfstudio_dataparser import NerfstudioDataParserConfig
+
+    config: SkedTrainerConfig = copy.deepcopy(sked_method.config)
+    config.output_dir = Path(output_dir)
+    config.experiment_name = "edit"
+    config.load_dir = Path(base)
+    config.sketches = Path(sketches)
+    config.data = Path(data)
+    config.pipeline.datamanager.data = Path(data)
+    config.pipeline.datamanager.dataparser = NerfstudioDataParserConfig(data=Path(data))
+    config.machine.device_type = device
+    config.mixed_precision = device == "cuda"
+    config.vis = "tensorboard"
+    config.max_num_iterations = iterations
+    config.steps_per_save = steps_per_save
+    config.steps_per_eval_image = 10**9
+    config.pipeline.model.prompt = prompt
+    config.pipeline.model.guidance = guidance
+    config.pipeline.model.guidance_resolution = guidance_resolution
+    config.pipeline.model.silhouette_resolution = silhouette_resolution
+    config.pipeline.model.edit_box_warmup = max(1, iterations // 2)
+    for optimizer in config.optimizers.values():
+        optimizer["scheduler"].max_steps = iterations
+    return config
+
+
+def run_edit(config: SkedTrainerConfig):
+    """What `ns-train` does with a config: save it, set up the trainer, train. Returns the trainer."""
+    config.set_timestamp()
+    config.save_config()
+    trainer = config.setup(local_rank=0, world_size=1)
+    trainer.setup()
+    trainer.train()
+    return trainer

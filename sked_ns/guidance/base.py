@@ -1,0 +1,47 @@
+"""The guidance interface."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Dict, Optional, Type
+
+import numpy as np
+from jaxtyping import Float
+from nerfstudio.configs.base_config import InstantiateConfig
+from torch import Tensor
+
+
+@dataclass
+class RenderedView:
+    """One rendered training view and its camera (model frame)."""
+
+    image: Float[Tensor, "1 3 height width"]
+    """Rendered colour in [0, 1], differentiable."""
+    camera_to_world: np.ndarray
+    """3x4, OpenGL axes."""
+    focal: float
+    direction: str
+    """front / side / back / overhead / bottom, for directional prompts."""
+    base_image: Optional[Tensor] = None
+    """The frozen base rendered from the same camera, for guidance that asks for it."""
+
+
+@dataclass
+class GuidanceConfig(InstantiateConfig):
+    _target: Type = field(default_factory=lambda: Guidance)
+
+
+class Guidance:
+    """Turns a rendered view into losses; `prepare` runs once before training."""
+
+    needs_base_render: bool = False
+    """Set by guidance that compares against the base (costs one more render per step)."""
+
+    def __init__(self, config: GuidanceConfig) -> None:
+        self.config = config
+
+    def prepare(self, prompt: Optional[str], device: str, context: Dict) -> None:
+        """Load weights, encode the prompt; `context` carries scene facts (dataparser transform)."""
+
+    def __call__(self, view: RenderedView, step: int) -> Dict[str, Tensor]:
+        raise NotImplementedError

@@ -1,0 +1,62 @@
+"""Reference guidance: renders of a known target scene pull the edit towards them.
+
+Deterministic and weight-free, for tests, benchmarks and the offline demo: the built-in
+target is the demo scene with its hat (an analytic scene rendered exactly at any camera).
+The reference is "the base plus the known change": the analytic target where it differs
+from the analytic base, the frozen base model's own render everywhere else, so the edit is
+pulled towards the change without being pulled towards the analytic scene elsewhere.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Dict, Literal, Optional, Type
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from sked_ns.guidance.base import Guidance, GuidanceConfig, RenderedView
+
+
+@dataclass
+class ReferenceGuidanceConfig(GuidanceConfig):
+    _target: Type = field(default_factory=lambda: ReferenceGuidance)
+    target: Literal["demo-hat"] = "demo-hat"
+    """Which target scene renders the references."""
+    weight: float = 30.0
+    """Multiplier of the image MSE; at 1 the silhouette loss fills the sketch with fog before the
+    reference shapes it (demo scene, 100 iterations: PSNR outside 18 dB at 1, 32 dB at 30)."""
+
+
+class ReferenceGuidance(Guidance):
+    config: ReferenceGuidanceConfig
+    needs_base_render = True
+
+    def prepare(self, prompt: Optional[str], device: str, context: Dict) -> None:
+        # The analytic target lives in the data frame: map cameras back from the model frame.
+        transform = context["dataparser_transform"]
+        rotation = np.asarray(transform.transform)[:, :3]
+        self._to_data = lambda pose: np.concatenate(
+            [rotation.T @ pose[:, :3], (rotation.T @ (pose[:, 3] / transform.scale - transform.transform[:, 3]))[:, None]], 1
+        )
+        self._scale = transform.scale
+        self.device = device
+
+    def target_image(self, view: RenderedView) -> tuple[Tensor, Tensor]:
+        """Target colour (1, 3, h, w) and where it differs from the base scene (1, 1, h, w)."""
+        from sked_ns import demo_scene
+
+        _, _, height, width = view.image.shape
+        pose = self._to_data(view.camera_to_world)
+        # Focal lengths are in pixels, so the frame's scale does not change them.
+        target = demo_scene.render(demo_scene.edited_sdf, pose, view.focal, width, height)
+        base = demo_scene.render(demo_scene.sphere_sdf, pose, view.focal, width, height)
+        changed = (target["rgb"] - base["rgb"]).abs().amax(dim=-1) > 1e-3
+        return target["rgb"].permute(2, 0, 1)[None].to(view.image), changed[None, None].to(view.image)
+
+    def __call__(self, view: RenderedView, step: int) -> Dict[str, Tensor]:
+        target, changed = self.target_image(view)
+        if view.base_image is not None:
+            target = torch.where(changed.bool(), target, view.base_image.to(target))
+        return {"reference_loss": self.config.weight * (view.image - target).pow(2).mean()}

@@ -1,0 +1,49 @@
+"""Render nerfstudio models at sketch-view cameras (evaluation, demo images)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Dict
+
+import cv2
+import numpy as np
+import torch
+
+from sked_ns.sketches import SketchView
+
+
+def render_at(model, view: SketchView, resolution: int) -> Dict[str, torch.Tensor]:
+    """rgb (h, w, 3) and accumulation (h, w) of `model` at `view` (model frame), longer side `resolution`."""
+    from sked_ns.sked_datamanager import cameras_of
+
+    scale = resolution / max(view.width, view.height)
+    width, height = max(1, round(view.width * scale)), max(1, round(view.height * scale))
+    sx, sy = width / view.width, height / view.height
+    camera = cameras_of(torch.tensor(view.camera_to_world[None], dtype=torch.float32),
+                        view.fl_x * sx, view.fl_y * sy, view.cx * sx, view.cy * sy, width, height).to(model.device)
+    was_training = model.training
+    model.eval()
+    with torch.no_grad():
+        outputs = model.get_outputs_for_camera(camera)
+    model.train(was_training)
+    return {"rgb": outputs["rgb"].cpu(), "accumulation": outputs["accumulation"][..., 0].cpu()}
+
+
+def resized_mask(view: SketchView, resolution: int) -> torch.Tensor:
+    scale = resolution / max(view.width, view.height)
+    size = (max(1, round(view.width * scale)), max(1, round(view.height * scale)))
+    return torch.from_numpy(cv2.resize(view.mask.astype(np.float32), size, interpolation=cv2.INTER_AREA) > 0.5)
+
+
+def load_pipeline(run_dir: Path, device: str = "cpu"):
+    """A trained run's pipeline (any method, SKED included) with its latest weights, for rendering."""
+    from sked_ns.base_scene import resolve_base
+    from sked_ns.sked_model import _without_lpips
+
+    run = resolve_base(run_dir)
+    run.config.machine.device_type = device
+    with _without_lpips():
+        pipeline = run.config.pipeline.setup(device=device, test_mode="test")
+    state = torch.load(run.checkpoint, map_location="cpu")
+    pipeline.load_pipeline(state["pipeline"], state["step"])
+    return pipeline.eval()

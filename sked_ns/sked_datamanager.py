@@ -1,0 +1,108 @@
+"""Datamanager: the base's dataset stays attached; SKED draws random and sketch views.
+
+Keeping nerfstudio's `VanillaDataManager` (train dataset, pixel sampler, dataparser
+outputs) is what lets `ns-export`, `ns-render` and the appearance embeddings work on an
+edited scene. SKED adds one random view aimed at the edit box per iteration and the fixed
+sketch views, rendered every iteration at reduced resolution for L_sil.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Dict, Optional, Tuple, Type
+
+import cv2
+import numpy as np
+import torch
+from nerfstudio.cameras.cameras import Cameras, CameraType
+from nerfstudio.cameras.rays import RayBundle
+from nerfstudio.data.datamanagers.base_datamanager import VanillaDataManager, VanillaDataManagerConfig
+
+from sked_ns.edit_box import EditBox
+from sked_ns.random_views import RandomViewSampler, focal_from_fov
+from sked_ns.sketches import DataparserTransform, SketchSet
+
+
+@dataclass
+class SkedDataManagerConfig(VanillaDataManagerConfig):
+    _target: Type = field(default_factory=lambda: SkedDataManager)
+    radius_scale_range: Tuple[float, float] = (0.8, 1.2)
+    """Random-view distance to the edit box centre, relative to the sketch cameras' distance."""
+    elevation_range: Tuple[float, float] = (-10.0, 60.0)
+    """Random-view elevation above the edit box centre, degrees."""
+    azimuth_range: Tuple[float, float] = (-180.0, 180.0)
+    """Random-view azimuth relative to the first sketch view, degrees."""
+    fov_range: Tuple[float, float] = (40.0, 70.0)
+    """Random-view horizontal field of view, degrees."""
+    seed: int = 0
+    """Seed of the random views (resumed runs continue the sequence from the step)."""
+
+
+def cameras_of(poses: torch.Tensor, fx, fy, cx, cy, width: int, height: int) -> Cameras:
+    return Cameras(
+        camera_to_worlds=poses,
+        fx=torch.as_tensor(fx, dtype=torch.float32).reshape(-1, 1),
+        fy=torch.as_tensor(fy, dtype=torch.float32).reshape(-1, 1),
+        cx=torch.as_tensor(cx, dtype=torch.float32).reshape(-1, 1),
+        cy=torch.as_tensor(cy, dtype=torch.float32).reshape(-1, 1),
+        width=torch.full((poses.shape[0], 1), width, dtype=torch.long),
+        height=torch.full((poses.shape[0], 1), height, dtype=torch.long),
+        camera_type=CameraType.PERSPECTIVE,
+    )
+
+
+class SkedDataManager(VanillaDataManager):
+    config: SkedDataManagerConfig
+
+    @property
+    def dataparser_transform(self) -> DataparserTransform:
+        outputs = self.train_dataparser_outputs
+        return DataparserTransform(outputs.dataparser_transform.numpy().astype(np.float64), float(outputs.dataparser_scale))
+
+    def attach_sketches(self, sketch_set: SketchSet, edit_box: EditBox, silhouette_resolution: int, guidance_resolution: int) -> None:
+        """Precompute the sketch views' rays and masks, and the random-view sampler."""
+        rays, masks = [], []
+        for view in sketch_set.views:
+            scale = silhouette_resolution / max(view.width, view.height)
+            width, height = max(1, round(view.width * scale)), max(1, round(view.height * scale))
+            sx, sy = width / view.width, height / view.height
+            mask = cv2.resize(view.mask.astype(np.float32), (width, height), interpolation=cv2.INTER_AREA) > 0.5
+            camera = cameras_of(torch.tensor(view.camera_to_world[None], dtype=torch.float32),
+                                view.fl_x * sx, view.fl_y * sy, view.cx * sx, view.cy * sy, width, height)
+            rays.append(camera.generate_rays(camera_indices=0, keep_shape=True).flatten())
+            masks.append(torch.from_numpy(mask))
+        # Views may differ in size: rays and masks are kept flat, in the same order.
+        self.sketch_rays: RayBundle = _concatenate(rays).to(self.device)
+        self.sketch_masks = torch.cat([mask.flatten() for mask in masks]).float().to(self.device)
+        self.random_views = RandomViewSampler.around_sketches(
+            edit_box.center, [view.camera_to_world for view in sketch_set.views],
+            radius_scale_range=tuple(self.config.radius_scale_range),
+            elevation_range_deg=tuple(self.config.elevation_range),
+            azimuth_range_deg=tuple(self.config.azimuth_range),
+            fov_range_deg=tuple(self.config.fov_range),
+        )
+        self.guidance_resolution = guidance_resolution
+
+    def next_sked(self, step: int) -> Dict:
+        """One random view (rays shaped H x W) plus the fixed sketch views."""
+        generator = torch.Generator().manual_seed(self.config.seed * 1_000_003 + step)  # resumable
+        pose, fov, direction = self.random_views.sample(generator)
+        size = self.guidance_resolution
+        focal = focal_from_fov(fov, size)
+        camera = cameras_of(torch.tensor(pose[None], dtype=torch.float32), focal, focal, size / 2, size / 2, size, size)
+        ray_bundle = camera.generate_rays(camera_indices=0, keep_shape=True).to(self.device)
+        return {
+            "random_view": ray_bundle,
+            "random_camera": {"camera_to_world": pose, "focal": focal, "direction": direction},
+            "sketch_rays": self.sketch_rays,
+            "sketch_masks": self.sketch_masks,
+        }
+
+
+def _concatenate(bundles) -> RayBundle:
+    return RayBundle(
+        origins=torch.cat([b.origins for b in bundles]),
+        directions=torch.cat([b.directions for b in bundles]),
+        pixel_area=torch.cat([b.pixel_area for b in bundles]),
+        camera_indices=torch.cat([b.camera_indices for b in bundles]),
+    )

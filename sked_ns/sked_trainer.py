@@ -1,0 +1,114 @@
+"""`ns-train sked`: turns `--load-dir` into a base to edit (or an edit to resume).
+
+nerfstudio's `--load-dir` means "resume this run": it restores the optimisers and the step.
+An edit instead starts at step 0 with fresh optimisers from the base's weights, so the base
+is resolved here, before the config is saved: its architecture is copied into the edit's
+model config, its checkpoint recorded, and `load_dir` cleared. Pointing `--load-dir` at an
+earlier SKED run resumes it; add `--progressive True` to edit that result again instead.
+"""
+
+from __future__ import annotations
+
+import functools
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Optional, Type
+
+import torch
+from nerfstudio.engine.trainer import Trainer, TrainerConfig
+from nerfstudio.utils.rich_utils import CONSOLE
+
+from sked_ns.base_scene import resolve_base
+from sked_ns.sked_model import copy_base_architecture
+
+
+@dataclass
+class SkedTrainerConfig(TrainerConfig):
+    _target: Type = field(default_factory=lambda: SkedTrainer)
+    sketches: Optional[Path] = None
+    """Alias for --pipeline.model.sketches: the sketch-set folder."""
+    progressive: bool = False
+    """With --load-dir on an earlier SKED run: edit its result again instead of resuming it."""
+
+    def save_config(self) -> None:
+        resolve_edit(self)  # before saving, so config.yml describes the edit's real model
+        super().save_config()
+
+
+def resolve_edit(config: SkedTrainerConfig) -> None:
+    """Fill the model config from --load-dir and the aliases; safe to call twice."""
+    model = config.pipeline.model
+    if config.sketches is not None:
+        model.sketches = config.sketches
+    if config.load_dir is None:
+        if model.base_checkpoint is None:
+            raise ValueError("ns-train sked needs the scene to edit: --load-dir <base run>/nerfstudio_models.")
+        return
+    base = resolve_base(config.load_dir, config.load_step)
+    if base.family == "sked" and not config.progressive:
+        # Resume: same architecture, base and sketch set as the interrupted run.
+        previous = base.model_config
+        copy_base_architecture(model, previous)
+        model.base_checkpoint = previous.base_checkpoint
+        model.sketches = model.sketches or previous.sketches
+        model.prompt = model.prompt or previous.prompt
+        config.load_dir = base.checkpoint.parent
+        CONSOLE.print(f"Resuming the SKED edit {base.run_dir} from {base.checkpoint.name}")
+        return
+    if base.family == "instant-ngp":
+        raise ValueError(
+            f"{base.run_dir / 'config.yml'}: instant-ngp bases need the occupancy-grid SKED model, which needs "
+            "CUDA (nerfacc) and is not in this version yet; edit a nerfacto base."
+        )
+    copy_base_architecture(model, base.model_config)
+    model.base_checkpoint = base.checkpoint
+    config.load_dir = None  # the base is not a run to resume: fresh optimisers, step 0
+    config.load_step = None
+    CONSOLE.print(f"Editing the {base.method} scene {base.run_dir} ({base.checkpoint.name})")
+
+
+class SkedTrainer(Trainer):
+    config: SkedTrainerConfig
+
+    def setup(self, test_mode="val") -> None:
+        resolve_edit(self.config)
+        self.skipped_steps = 0
+        super().setup(test_mode=test_mode)
+
+    def train_iteration(self, step: int):
+        """nerfstudio's iteration, except that a non-finite loss skips the update with a warning."""
+        self.optimizers.zero_grad_all()
+        device_type = "cpu" if self.device.split(":")[0] in ("cpu", "mps") else self.device.split(":")[0]
+        with torch.autocast(device_type=device_type, enabled=self.mixed_precision):
+            _, loss_dict, metrics_dict = self.pipeline.get_train_loss_dict(step=step)
+            loss = functools.reduce(torch.add, loss_dict.values())
+        if not torch.isfinite(loss):
+            self._skip(step, [name for name, value in loss_dict.items() if not torch.isfinite(value)])
+            return loss.detach(), loss_dict, metrics_dict
+        self.grad_scaler.scale(loss).backward()
+        gradients_finite = all(
+            torch.isfinite(p.grad).all() for p in self.pipeline.model.parameters() if p.grad is not None
+        )
+        if not gradients_finite and not self.grad_scaler.is_enabled():
+            self.optimizers.zero_grad_all()
+            self._skip(step, ["gradients"])
+            return loss.detach(), loss_dict, metrics_dict
+        self.optimizers.optimizer_scaler_step_all(self.grad_scaler)
+        scale = self.grad_scaler.get_scale()
+        self.grad_scaler.update()
+        if scale <= self.grad_scaler.get_scale():  # no step was skipped by the scaler
+            self.optimizers.scheduler_step_all(step)
+        metrics_dict["skipped_steps"] = torch.tensor(float(self.skipped_steps))
+        return loss, loss_dict, metrics_dict
+
+    def _skip(self, step: int, names) -> None:
+        self.skipped_steps += 1
+        CONSOLE.print(f"[yellow]step {step}: non-finite {', '.join(names)}; update skipped[/yellow]")
+
+    def save_checkpoint(self, step: int) -> None:
+        """Never write a checkpoint holding NaN or inf weights."""
+        bad = [name for name, p in self.pipeline.model.named_parameters() if not torch.isfinite(p).all()]
+        if bad:
+            CONSOLE.print(f"[red]step {step}: not saving a checkpoint with non-finite weights ({bad[:3]})[/red]")
+            return
+        super().save_checkpoint(step)
