@@ -143,6 +143,12 @@ class SkedModel(NerfactoModel):
                 + ("Install tinycudann here, or edit on the machine that trained the base."
                    if uses_tcnn(state) else "Pass --pipeline.model.implementation torch.")
             )
+        embedding = state.get("field.embedding_appearance.embedding.weight")
+        if embedding is not None and embedding.shape[0] != self.num_train_data:
+            raise ValueError(
+                f"{checkpoint}: the base was trained on {embedding.shape[0]} images but --data has "
+                f"{self.num_train_data}. Pass the base's own data and dataparser settings."
+            )
         wanted = [key for key in ours if key.startswith(("field.", "proposal_networks."))]
         missing = [key for key in wanted if key not in state]
         mismatched = [key for key in wanted if key in state and state[key].shape != ours[key].shape]
@@ -150,12 +156,6 @@ class SkedModel(NerfactoModel):
             raise ValueError(
                 f"{checkpoint}: the base's weights do not fit this model (missing {missing[:3]}, "
                 f"shape mismatch {mismatched[:3]}). Is --data the base's data, and the base a supported method?"
-            )
-        embedding = state.get("field.embedding_appearance.embedding.weight")
-        if embedding is not None and embedding.shape[0] != self.num_train_data:
-            raise ValueError(
-                f"{checkpoint}: the base was trained on {embedding.shape[0]} images but --data has "
-                f"{self.num_train_data}. Pass the base's own data and dataparser settings."
             )
         self.load_state_dict({key: state[key] for key in wanted}, strict=False)
         base_field = copy.deepcopy(self.field).eval().requires_grad_(False)

@@ -75,6 +75,11 @@ class SkedTrainer(Trainer):
         self.skipped_steps = 0
         super().setup(test_mode=test_mode)
 
+    def train(self) -> None:
+        # nerfstudio runs max_num_iterations more steps after a resume; an edit's length is its total.
+        self.config.max_num_iterations = max(self.config.max_num_iterations - self._start_step, 1)
+        super().train()
+
     def train_iteration(self, step: int):
         """nerfstudio's iteration, except that a non-finite loss skips the update with a warning."""
         self.optimizers.zero_grad_all()

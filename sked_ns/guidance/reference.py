@@ -25,8 +25,9 @@ class ReferenceGuidanceConfig(GuidanceConfig):
     target: Literal["demo-hat"] = "demo-hat"
     """Which target scene renders the references."""
     weight: float = 30.0
-    """Multiplier of the image MSE; at 1 the silhouette loss fills the sketch with fog before the
-    reference shapes it (demo scene, 100 iterations: PSNR outside 18 dB at 1, 32 dB at 30)."""
+    """Multiplier of the image MSE. At 1 the silhouette loss outweighs it and fills the sketch
+    with a grey haze (demo scene, 100 iterations: a grey hat, PSNR outside 30.9 dB); at 30 the
+    hat takes the target's shape and colour (PSNR outside 32.3 dB, IoS 0.89)."""
 
 
 class ReferenceGuidance(Guidance):

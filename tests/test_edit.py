@@ -1,0 +1,221 @@
+"""`ns-train sked` end to end on the tiny demo scene, on the CPU, through the user's code path.
+
+The base is a real nerfacto checkpoint (config.yml, dataparser_transforms.json,
+nerfstudio_models/) fitted to the analytic demo scene; the edit uses reference guidance
+whose target is that scene with a hat, so the outcome is known.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import shutil
+from pathlib import Path
+
+import pytest
+import torch
+import yaml
+
+from sked_ns import demo_scene
+from sked_ns.base_scene import read_model_state, resolve_base
+from sked_ns.demo_base import build_demo_base
+from sked_ns.edit_run import edit_config, run_edit
+from sked_ns.metrics import intersection_over_sketch, psnr_outside
+from sked_ns.render import load_pipeline, render_at, resized_mask
+from sked_ns.sked_trainer import resolve_edit
+from sked_ns.sketches import load_sketch_set, save_sketch_set
+
+ITERATIONS = 60
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory):
+    root = tmp_path_factory.mktemp("scene")
+    demo_scene.write_demo_dataset(root / "data")
+    run = build_demo_base(root / "data", root / "runs", steps=400, points_per_step=4096)
+    save_sketch_set(demo_scene.demo_sketch_set(size=64), root / "sketches")
+    return {"root": root, "data": root / "data", "base": run, "sketches": root / "sketches"}
+
+
+def _digest(folder: Path) -> dict:
+    return {p.relative_to(folder): hashlib.sha256(p.read_bytes()).hexdigest() for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
+@pytest.fixture(scope="module")
+def edited(scene):
+    before = _digest(scene["base"])
+    config = edit_config(scene["base"] / "nerfstudio_models", scene["data"], scene["sketches"],
+                         scene["root"] / "edits", iterations=ITERATIONS, guidance_resolution=24,
+                         silhouette_resolution=24, steps_per_save=20)
+    trainer = run_edit(config)
+    return {"trainer": trainer, "run": trainer.base_dir, "base_digest_before": before}
+
+
+def _sketch_metrics(pipeline, base_pipeline, sketches_dir):
+    sketches = load_sketch_set(sketches_dir).in_model_frame(pipeline.datamanager.dataparser_transform)
+    results = []
+    for view in sketches.views:
+        edit, base = render_at(pipeline.model, view, 48), render_at(base_pipeline.model, view, 48)
+        mask = resized_mask(view, 48)
+        results.append({
+            "ios_edit": intersection_over_sketch(edit["accumulation"], mask),
+            "ios_base": intersection_over_sketch(base["accumulation"], mask),
+            "psnr_outside": psnr_outside(edit["rgb"], base["rgb"], mask),
+        })
+    return results
+
+
+def test_edit_fills_the_sketch_and_keeps_the_rest(scene, edited):
+    base_pipeline = load_pipeline(scene["base"])
+    edit_pipeline = load_pipeline(edited["run"])
+    for view in _sketch_metrics(edit_pipeline, base_pipeline, scene["sketches"]):
+        # The base (a sphere) covers ~0.2-0.3 of the hat sketches; a grown hat covers most of them.
+        assert view["ios_edit"] > 0.7 and view["ios_edit"] > view["ios_base"] + 0.4, view
+        # Outside the sketches the edit renders like the base (the paper reports 27.5 dB on average).
+        assert view["psnr_outside"] > 25.0, view
+
+
+def test_base_files_untouched_and_base_field_frozen(scene, edited):
+    assert _digest(scene["base"]) == edited["base_digest_before"]
+    model = edited["trainer"].pipeline.model
+    base_state = read_model_state(resolve_base(scene["base"]).checkpoint)
+    frozen = model.base_field.state_dict()
+    for key, value in frozen.items():
+        assert torch.equal(value, base_state[f"field.{key}"]), key
+    changed = [key for key, value in model.field.state_dict().items() if not torch.equal(value, base_state[f"field.{key}"])]
+    assert changed, "the editable field did not change"
+    # The frozen base is not in the checkpoint, nor is any guidance weight.
+    checkpoint = torch.load(sorted((edited["run"] / "nerfstudio_models").glob("*.ckpt"))[-1], map_location="cpu")
+    top_level = {key.split(".")[1] for key in checkpoint["pipeline"] if key.startswith("_model.")}
+    assert top_level <= {"field", "proposal_networks", "camera_optimizer", "device_indicator_param"}, top_level
+
+
+def test_edit_starts_bit_identical_with_fresh_optimisers(scene, tmp_path):
+    config = edit_config(scene["base"], scene["data"], scene["sketches"], tmp_path, iterations=5)
+    resolve_edit(config)
+    assert config.load_dir is None  # the base is not resumed: step 0, fresh Adam
+    pipeline = config.pipeline.setup(device="cpu", test_mode="val")
+    base_state = read_model_state(resolve_base(scene["base"]).checkpoint)
+    for key, value in pipeline.model.field.state_dict().items():
+        assert torch.equal(value, base_state[f"field.{key}"]), key
+    pipeline.model.step = 10**6  # past the edit-box warm-up: rendering equals the base's exactly
+    view = load_sketch_set(scene["sketches"]).in_model_frame(pipeline.datamanager.dataparser_transform).views[0]
+    base_pipeline = load_pipeline(scene["base"])
+    assert torch.equal(render_at(pipeline.model, view, 16)["rgb"], render_at(base_pipeline.model, view, 16)["rgb"])
+
+
+def test_interrupted_edit_resumes_from_its_last_checkpoint(scene, tmp_path):
+    # A run that stops right after its step-20 checkpoint is an edit killed mid-way.
+    first = edit_config(scene["base"], scene["data"], scene["sketches"], tmp_path / "first", iterations=21,
+                        steps_per_save=10, guidance_resolution=16, silhouette_resolution=16)
+    interrupted = run_edit(first).base_dir
+    assert [p.name for p in (interrupted / "nerfstudio_models").glob("*.ckpt")] == ["step-000000020.ckpt"]
+    config = edit_config(interrupted / "nerfstudio_models", scene["data"], scene["sketches"], tmp_path / "resumed",
+                         iterations=25, guidance_resolution=16, silhouette_resolution=16)
+    config.sketches = None  # taken from the interrupted run's config.yml
+    config.pipeline.model.base_checkpoint = None
+    config.set_timestamp()
+    config.save_config()
+    trainer = config.setup(local_rank=0, world_size=1)
+    trainer.setup()
+    assert trainer._start_step == 21
+    saved = torch.load(interrupted / "nerfstudio_models" / "step-000000020.ckpt", map_location="cpu")
+    for key, value in trainer.pipeline.state_dict().items():
+        assert torch.equal(value, saved["pipeline"][key]), key
+    for name, optimizer in trainer.optimizers.optimizers.items():
+        state = optimizer.state_dict()["state"]
+        assert state and all(torch.equal(s["exp_avg"], saved["optimizers"][name]["state"][k]["exp_avg"]) for k, s in state.items())
+    assert trainer.pipeline.model.config.base_checkpoint == resolve_base(scene["base"]).checkpoint
+    trainer.train()  # and it carries on to the end
+    assert (trainer.checkpoint_dir / "step-000000024.ckpt").exists()
+
+
+def test_progressive_edit_uses_the_edit_as_base(scene, edited, tmp_path):
+    config = edit_config(edited["run"], scene["data"], scene["sketches"], tmp_path, iterations=2)
+    config.progressive = True
+    resolve_edit(config)
+    assert config.load_dir is None
+    assert config.pipeline.model.base_checkpoint.parent == edited["run"] / "nerfstudio_models"
+    pipeline = config.pipeline.setup(device="cpu", test_mode="val")
+    edited_state = read_model_state(config.pipeline.model.base_checkpoint)
+    for key, value in pipeline.model.base_field.state_dict().items():
+        assert torch.equal(value, edited_state[f"field.{key}"]), key
+
+
+# ---- bad input -------------------------------------------------------------------------------
+
+
+def test_load_dir_without_checkpoint_or_config(scene, tmp_path):
+    (tmp_path / "nerfstudio_models").mkdir()
+    with pytest.raises(FileNotFoundError, match="config.yml"):
+        resolve_base(tmp_path / "nerfstudio_models")
+    shutil.copy(scene["base"] / "config.yml", tmp_path / "config.yml")
+    with pytest.raises(FileNotFoundError, match="no step-.*ckpt"):
+        resolve_base(tmp_path)
+
+
+def test_unsupported_base_method(scene, tmp_path):
+    run = tmp_path / "run"
+    shutil.copytree(scene["base"], run)
+    config = yaml.load((run / "config.yml").read_text(), Loader=yaml.Loader)
+    config.method_name = "splatfacto"
+    (run / "config.yml").write_text(yaml.dump(config))
+    with pytest.raises(ValueError, match="trained with 'splatfacto'"):
+        resolve_base(run)
+
+
+def test_data_that_does_not_match_the_base(scene, tmp_path):
+    demo_scene.write_demo_dataset(tmp_path / "other", num_views=12)
+    config = edit_config(scene["base"], tmp_path / "other", scene["sketches"], tmp_path / "out", iterations=2)
+    resolve_edit(config)
+    with pytest.raises(ValueError, match="trained on 22 images but --data has 11"):
+        config.pipeline.setup(device="cpu", test_mode="val")
+
+
+def test_tcnn_base_without_tcnn_is_explained(scene, tmp_path):
+    run = tmp_path / "run"
+    shutil.copytree(scene["base"], run)
+    path = resolve_base(run).checkpoint
+    state = torch.load(path, map_location="cpu")
+    state["pipeline"]["_model.field.mlp_base.tcnn_encoding.params"] = torch.zeros(10)
+    torch.save(state, path)
+    config = edit_config(run, scene["data"], scene["sketches"], tmp_path / "out", iterations=2)
+    resolve_edit(config)
+    with pytest.raises(ValueError, match="tiny-cuda-nn.*Install tinycudann"):
+        config.pipeline.setup(device="cpu", test_mode="val")
+
+
+def test_missing_sketches_and_bad_beta(scene, tmp_path):
+    config = edit_config(scene["base"], scene["data"], scene["sketches"], tmp_path, iterations=2)
+    config.sketches = None
+    config.pipeline.model.sketches = None
+    resolve_edit(config)
+    with pytest.raises(ValueError, match="--sketches"):
+        config.pipeline.setup(device="cpu", test_mode="val")
+    config.pipeline.model.sketches = scene["sketches"]
+    config.pipeline.model.beta = -1.0
+    with pytest.raises(ValueError, match="beta"):
+        config.pipeline.setup(device="cpu", test_mode="val")
+
+
+def test_nan_loss_skips_the_step_and_never_saves_nan(scene, tmp_path, monkeypatch):
+    config = edit_config(scene["base"], scene["data"], scene["sketches"], tmp_path, iterations=3)
+    config.set_timestamp()
+    trainer = config.setup(local_rank=0, world_size=1)
+    trainer.setup()
+    before = {k: v.clone() for k, v in trainer.pipeline.model.field.state_dict().items()}
+    original = trainer.pipeline.model.get_sked_loss_dict
+
+    def poisoned(*args, **kwargs):
+        outputs, losses, metrics = original(*args, **kwargs)
+        losses["silhouette_loss"] = losses["silhouette_loss"] * float("nan")
+        return outputs, losses, metrics
+
+    monkeypatch.setattr(trainer.pipeline.model, "get_sked_loss_dict", poisoned)
+    trainer.train_iteration(0)
+    assert trainer.skipped_steps == 1
+    for key, value in trainer.pipeline.model.field.state_dict().items():
+        assert torch.equal(value, before[key]), key
+    with torch.no_grad():
+        next(trainer.pipeline.model.field.parameters()).fill_(float("nan"))
+    trainer.save_checkpoint(1)
+    assert not list(trainer.checkpoint_dir.glob("*.ckpt")) if trainer.checkpoint_dir.exists() else True
