@@ -22,7 +22,7 @@ from sked_ns.edit_run import edit_config, run_edit
 from sked_ns.metrics import intersection_over_sketch, psnr_outside
 from sked_ns.render import load_pipeline, render_at, resized_mask
 from sked_ns.sked_trainer import resolve_edit
-from sked_ns.sketches import load_sketch_set, save_sketch_set
+from sked_ns.sketches import SketchSet, SketchView, load_sketch_set, save_sketch_set
 
 ITERATIONS = 60
 
@@ -219,3 +219,46 @@ def test_nan_loss_skips_the_step_and_never_saves_nan(scene, tmp_path, monkeypatc
         next(trainer.pipeline.model.field.parameters()).fill_(float("nan"))
     trainer.save_checkpoint(1)
     assert not list(trainer.checkpoint_dir.glob("*.ckpt")) if trainer.checkpoint_dir.exists() else True
+
+
+def test_text_prompt_edit_runs_through_stable_diffusion(scene, tmp_path):
+    from tiny_sd import build_tiny_stable_diffusion
+
+    config = edit_config(scene["base"], scene["data"], scene["sketches"], tmp_path / "out", iterations=3,
+                         guidance="stable-diffusion", prompt="a red chef hat", guidance_resolution=16,
+                         silhouette_resolution=16)
+    config.pipeline.model.sds.model = str(build_tiny_stable_diffusion(tmp_path / "sd"))
+    config.pipeline.model.sds.image_size = 32
+    trainer = run_edit(config)
+    _, losses, _ = trainer.pipeline.get_train_loss_dict(step=3)
+    assert {"sds_loss", "preservation_loss", "silhouette_loss", "sparsity_loss"} <= set(losses)
+    assert all(torch.isfinite(value) for value in losses.values())
+    checkpoint = torch.load(next((trainer.base_dir / "nerfstudio_models").glob("*.ckpt")), map_location="cpu")
+    assert not any("unet" in key or "vae" in key for key in checkpoint["pipeline"])
+
+
+def test_carving_removes_the_sketched_content(scene, tmp_path):
+    def cap_sdf(points):  # a slab through the top of the sphere
+        local = points - points.new_tensor([0.0, 0.0, 0.42])
+        radial = local[..., :2].norm(dim=-1) - 0.3
+        axial = local[..., 2].abs() - 0.12
+        return torch.maximum(radial, axial)
+
+    views = []
+    for azimuth, elevation in ((20.0, 20.0), (110.0, 30.0)):
+        pose = demo_scene.orbit_pose(azimuth, elevation, 2.4)
+        mask = demo_scene.render(cap_sdf, pose, 76.8, 64, 64)["hit"].numpy()
+        views.append(SketchView(mask=mask, camera_to_world=pose, fl_x=76.8, fl_y=76.8, cx=32, cy=32))
+    save_sketch_set(SketchSet(views=views, frame="data"), tmp_path / "cap")
+    config = edit_config(scene["base"], scene["data"], tmp_path / "cap", tmp_path / "out", iterations=40,
+                         guidance="stable-diffusion", prompt=None, guidance_resolution=24, silhouette_resolution=24)
+    trainer = run_edit(config)
+    _, losses, _ = trainer.pipeline.get_train_loss_dict(step=40)
+    assert "carve_loss" in losses and "sds_loss" not in losses and "silhouette_loss" not in losses
+    base_pipeline = load_pipeline(scene["base"])
+    sketches = load_sketch_set(tmp_path / "cap").in_model_frame(trainer.pipeline.datamanager.dataparser_transform)
+    for view in sketches.views:
+        mask = resized_mask(view, 48)
+        before = render_at(base_pipeline.model, view, 48)["accumulation"][mask].mean()
+        after = render_at(trainer.pipeline.model, view, 48)["accumulation"][mask].mean()
+        assert after < before - 0.2, (before, after)

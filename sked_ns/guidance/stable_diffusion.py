@@ -60,6 +60,13 @@ class StableDiffusionGuidance(Guidance):
     def _load(self, cls, subfolder: str, **kwargs):
         source = self.config.model
         local = Path(source).expanduser()
+        if local.exists() and not (local / subfolder).is_dir():
+            # Checked here: some loaders quietly build a default object from a missing folder.
+            raise DiffusionWeightsMissing(
+                f"{local}: no '{subfolder}/' here. A diffusers Stable Diffusion folder holds unet/, vae/, "
+                "text_encoder/, tokenizer/ and scheduler/ (as `save_pretrained` or `huggingface-cli download` "
+                "write them)."
+            )
         try:
             if local.exists():
                 return cls.from_pretrained(str(local), subfolder=subfolder, **kwargs)
@@ -69,8 +76,8 @@ class StableDiffusionGuidance(Guidance):
             raise DiffusionWeightsMissing(
                 f"Cannot load the diffusion model's '{subfolder}' from {where} ({type(error).__name__}: {error}). "
                 "Provide the weights: download a diffusers Stable Diffusion checkpoint once where the hub is "
-                f"reachable (e.g. `huggingface-cli download {source}`, which fills the local cache used offline), "
-                "or pass a local folder with --pipeline.model.sds.model /path/to/stable-diffusion. "
+                f"reachable (`huggingface-cli download {source}` fills the cache read offline), or pass a local "
+                "folder with --pipeline.model.sds.model /path/to/stable-diffusion. "
                 "Without weights, use --pipeline.model.guidance reference."
             ) from error
 
