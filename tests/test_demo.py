@@ -1,4 +1,4 @@
-"""The README's demo: sketches of the demo scene, through the dataparser, to a weight image."""
+"""The README's main command: the demo edit, end to end on the CPU."""
 
 from __future__ import annotations
 
@@ -10,14 +10,24 @@ import pytest
 from sked_ns.demo import run
 
 
-def test_demo_marks_the_hat_editable_and_keeps_the_sphere(tmp_path):
-    summary = run(tmp_path / "demo", size=64)
-    image = cv2.imread(summary["image"])
-    assert image is not None and image.shape == (64, 3 * 64, 3)
+def test_demo_edits_the_scene_and_reports(tmp_path):
+    summary = run(tmp_path / "demo", size=48, iterations=30, base_steps=300)
+    assert summary["guidance"] == "reference"  # no diffusion weights here, and no prompt
     assert summary["mean_weight_on_hat"] < 0.05  # the sketched hat may change
     assert summary["mean_weight_on_sphere"] > 0.6  # most of the base is kept
-    assert json.loads((tmp_path / "demo" / "summary.json").read_text())["beta"] == 0.025
-    run(tmp_path / "demo", size=32)  # a rerun may replace its own output
+    for path in summary["images"]:
+        assert cv2.imread(path) is not None
+    for view in summary["views"]:
+        assert view["ios_edit"] > view["ios_base"]  # the hat grew into the sketches
+    assert json.loads((tmp_path / "demo" / "summary.json").read_text())["iterations"] == 30
+
+
+def test_prompt_without_weights_falls_back_to_reference(tmp_path, monkeypatch, capsys):
+    from sked_ns.demo import choose_guidance
+
+    monkeypatch.setenv("HF_HOME", str(tmp_path / "empty-cache"))
+    assert choose_guidance("a red hat", "CompVis/stable-diffusion-v1-4") == "reference"
+    assert "reference guidance" in capsys.readouterr().out
 
 
 def test_demo_never_writes_into_a_foreign_folder(tmp_path):

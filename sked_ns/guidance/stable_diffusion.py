@@ -81,6 +81,20 @@ class StableDiffusionGuidance(Guidance):
                 "Without weights, use --pipeline.model.guidance reference."
             ) from error
 
+    def weights_available(self) -> bool:
+        """Whether the checkpoint can be read here without downloading (its scheduler, as a probe)."""
+        from diffusers import DDPMScheduler
+
+        offline = self.config.local_files_only
+        self.config.local_files_only = True
+        try:
+            self._load(DDPMScheduler, "scheduler")
+            return True
+        except DiffusionWeightsMissing:
+            return False
+        finally:
+            self.config.local_files_only = offline
+
     def prepare(self, prompt: Optional[str], device: str, context: Dict) -> None:
         if not prompt or not prompt.strip():
             raise ValueError("Score distillation needs a text prompt: pass --prompt \"...\" (or carve with no guidance).")
