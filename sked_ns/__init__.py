@@ -5,4 +5,4 @@ from sked_ns.compat import allow_numpy_in_checkpoints
 # Runs at plugin import, which every ns-* command triggers through the method registry.
 allow_numpy_in_checkpoints()
 
-__version__ = "0.1.0"
+__version__ = "0.2.0"

@@ -262,3 +262,15 @@ def test_carving_removes_the_sketched_content(scene, tmp_path):
         before = render_at(base_pipeline.model, view, 48)["accumulation"][mask].mean()
         after = render_at(trainer.pipeline.model, view, 48)["accumulation"][mask].mean()
         assert after < before - 0.2, (before, after)
+
+
+def test_viewer_outputs_include_the_preservation_weight(scene, edited):
+    pipeline = load_pipeline(edited["run"])  # how ns-viewer / ns-render load an edit
+    camera = pipeline.datamanager.train_dataset.cameras[0:1].to(pipeline.model.device)
+    camera.rescale_output_resolution(0.25)
+    with torch.no_grad():
+        outputs = pipeline.model.get_outputs_for_camera(camera)
+    assert {"rgb", "depth", "accumulation", "preservation_weight"} <= set(outputs)
+    weight = outputs["preservation_weight"]
+    assert torch.isfinite(weight).all() and weight.min() >= 0 and weight.max() <= 1 + 1e-5
+    assert weight.min() < 0.5 < weight.max()  # the hat is editable, the rest is kept
