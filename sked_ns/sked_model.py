@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import contextlib
 import copy
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Dict, List, Literal, Optional, Type
@@ -121,6 +122,7 @@ class SkedModel(NerfactoModel):
         # The appearance of random views is the average embedding: keep it as trained.
         if self.field.embedding_appearance is not None:
             self.field.embedding_appearance.requires_grad_(False)
+        warn_degenerate_settings(self.config, sketch_set)
         self._load_base()
         self._boost_proposals_in_edit_box()
         self._captured: Dict[str, object] = {}
@@ -353,6 +355,33 @@ class SkedModel(NerfactoModel):
         if "preservation_weight" in outputs:
             images["preservation_weight"] = outputs["preservation_weight"]
         return metrics, images
+
+
+def warn_degenerate_settings(config: SkedModelConfig, sketch_set: SketchSet) -> List[str]:
+    """Settings that run without error but cannot give a sensible edit get a clear warning."""
+    messages = []
+    if config.beta < 1e-3:
+        messages.append(f"beta = {config.beta:g} image widths is under a pixel at usual sizes: only the exact "
+                        "sketch rays may change and the edit cannot blend in (paper range 0.005-1).")
+    if config.beta > 1.0:
+        messages.append(f"beta = {config.beta:g} image widths: preservation weights are near 0 around the whole "
+                        "object, so the edit may change everything (paper range 0.005-1).")
+    if config.lambda_pres == 0:
+        messages.append("lambda_pres = 0: nothing preserves the base (the paper's no-preserve ablation).")
+    if config.lambda_sil == 0 and config.prompt:
+        messages.append("lambda_sil = 0: nothing makes the edit fill the sketches (the paper's no-silhouette ablation).")
+    for view in sketch_set.views:
+        covered = float(view.mask.mean())
+        if covered > 0.9:
+            messages.append(f"{view.name or 'a sketch view'}: the mask covers {covered:.0%} of the image, so almost "
+                            "nothing in that view is preserved.")
+    for message in messages:
+        warnings.warn(message, SkedSettingsWarning, stacklevel=2)
+    return messages
+
+
+class SkedSettingsWarning(UserWarning):
+    """A setting that runs but defeats the method."""
 
 
 def copy_base_architecture(target: SkedModelConfig, base_model_config) -> None:

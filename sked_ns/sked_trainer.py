@@ -73,6 +73,8 @@ class SkedTrainer(Trainer):
     def setup(self, test_mode="val") -> None:
         resolve_edit(self.config)
         self.skipped_steps = 0
+        # fp16 on CUDA; tests set it on the CPU (where nerfstudio turns mixed precision off) to prove fp16 safety.
+        self.autocast_dtype = torch.float16 if self.device.startswith("cuda") else torch.bfloat16
         super().setup(test_mode=test_mode)
 
     def train(self) -> None:
@@ -84,7 +86,7 @@ class SkedTrainer(Trainer):
         """nerfstudio's iteration, except that a non-finite loss skips the update with a warning."""
         self.optimizers.zero_grad_all()
         device_type = "cpu" if self.device.split(":")[0] in ("cpu", "mps") else self.device.split(":")[0]
-        with torch.autocast(device_type=device_type, enabled=self.mixed_precision):
+        with torch.autocast(device_type=device_type, dtype=self.autocast_dtype, enabled=self.mixed_precision):
             _, loss_dict, metrics_dict = self.pipeline.get_train_loss_dict(step=step)
             loss = functools.reduce(torch.add, loss_dict.values())
         if not torch.isfinite(loss):

@@ -51,6 +51,20 @@ def random_view(rng: np.random.Generator, width: int, height: int, name: str = "
     )
 
 
+@pytest.fixture(scope="session")
+def scene(tmp_path_factory):
+    """The demo dataset, a tiny nerfacto base fitted to it (a real run folder) and hat sketches."""
+    from sked_ns import demo_scene
+    from sked_ns.demo_base import build_demo_base
+    from sked_ns.sketches import save_sketch_set
+
+    root = tmp_path_factory.mktemp("scene")
+    demo_scene.write_demo_dataset(root / "data")
+    run = build_demo_base(root / "data", root / "runs", steps=400, points_per_step=4096)
+    save_sketch_set(demo_scene.demo_sketch_set(size=64), root / "sketches")
+    return {"root": root, "data": root / "data", "base": run, "sketches": root / "sketches"}
+
+
 @pytest.fixture
 def rng() -> np.random.Generator:
     return np.random.default_rng(0)

@@ -17,7 +17,6 @@ import yaml
 
 from sked_ns import demo_scene
 from sked_ns.base_scene import read_model_state, resolve_base
-from sked_ns.demo_base import build_demo_base
 from sked_ns.edit_run import edit_config, run_edit
 from sked_ns.metrics import intersection_over_sketch, psnr_outside
 from sked_ns.render import load_pipeline, render_at, resized_mask
@@ -25,15 +24,6 @@ from sked_ns.sked_trainer import resolve_edit
 from sked_ns.sketches import SketchSet, SketchView, load_sketch_set, save_sketch_set
 
 ITERATIONS = 60
-
-
-@pytest.fixture(scope="module")
-def scene(tmp_path_factory):
-    root = tmp_path_factory.mktemp("scene")
-    demo_scene.write_demo_dataset(root / "data")
-    run = build_demo_base(root / "data", root / "runs", steps=400, points_per_step=4096)
-    save_sketch_set(demo_scene.demo_sketch_set(size=64), root / "sketches")
-    return {"root": root, "data": root / "data", "base": run, "sketches": root / "sketches"}
 
 
 def _digest(folder: Path) -> dict:
