@@ -5,7 +5,6 @@ from __future__ import annotations
 from typing import Sequence
 
 import numpy as np
-import torch
 from torch import Tensor
 
 # Nine thresholds spread over [25, 225] / 255 (paper, Sec. 4.2).

@@ -9,7 +9,7 @@ sketch views, rendered every iteration at reduced resolution for L_sil.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Dict, Optional, Tuple, Type
+from typing import Dict, Tuple, Type
 
 import cv2
 import numpy as np
