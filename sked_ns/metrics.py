@@ -20,6 +20,20 @@ def intersection_over_sketch(alpha: Tensor, mask: Tensor, thresholds: Sequence[f
     return float(np.mean([((alpha > tau) & mask).sum().item() / mask.sum().item() for tau in thresholds]))
 
 
+def ssim_outside(edited: Tensor, base: Tensor, mask: Tensor) -> float:
+    """Mean of the SSIM map (11x11 Gaussian windows) over the pixels outside the sketch."""
+    from torchmetrics.functional.image import structural_similarity_index_measure
+
+    keep = ~mask.bool().reshape(edited.shape[:2])
+    if not keep.any():
+        raise ValueError("The sketch covers the whole image: nothing outside it to compare.")
+    to_nchw = lambda image: image.float().permute(2, 0, 1)[None]  # noqa: E731
+    _, ssim_map = structural_similarity_index_measure(
+        to_nchw(edited), to_nchw(base), data_range=1.0, return_full_image=True
+    )
+    return float(ssim_map[0].mean(dim=0)[keep].mean())
+
+
 def psnr_outside(edited: Tensor, base: Tensor, mask: Tensor) -> float:
     """PSNR between edited and base renders over the pixels outside the sketch (images in [0, 1])."""
     keep = ~mask.bool().reshape(edited.shape[:2])

@@ -264,3 +264,24 @@ def test_viewer_outputs_include_the_preservation_weight(scene, edited):
     weight = outputs["preservation_weight"]
     assert torch.isfinite(weight).all() and weight.min() >= 0 and weight.max() <= 1 + 1e-5
     assert weight.min() < 0.5 < weight.max()  # the hat is editable, the rest is kept
+
+
+def test_sked_eval_reports_the_paper_metrics(scene, edited, tmp_path):
+    import json
+    import subprocess
+    import sys
+
+    output = tmp_path / "eval.json"
+    result = subprocess.run(
+        [sys.executable, "-m", "sked_ns.evaluate", str(edited["run"] / "config.yml"), "--output", str(output),
+         "--resolution", "48"], capture_output=True, text=True, timeout=600,
+    )
+    assert result.returncode == 0, result.stderr[-3000:]
+    metrics = json.loads(output.read_text())
+    assert len(metrics["views"]) == 2
+    for key in ("psnr_outside", "ssim_outside", "ios"):
+        assert key in metrics["mean"] and all(key in view for view in metrics["views"])
+    assert metrics["mean"]["ios"] > 0.7 and metrics["mean"]["psnr_outside"] > 25 and metrics["mean"]["ssim_outside"] > 0.8
+    assert metrics["lpips_outside"].startswith("unavailable") or "lpips_outside" in metrics["views"][0]
+    assert metrics["clip_similarity"].startswith("unavailable")
+    assert (tmp_path / "eval.png").exists()

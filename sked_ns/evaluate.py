@@ -1,0 +1,114 @@
+"""`sked-eval`: the paper's protocol on an edited run's sketch views.
+
+Renders every sketch view with the base and the edit and reports PSNR and SSIM outside the
+sketches, Intersection-over-Sketch, and LPIPS / CLIP similarity only when their weights are
+available locally (reported as unavailable otherwise, never faked). Writes JSON and a
+contact sheet (base | edit | mask overlay, one row per sketch view).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+from typing import Dict, Optional
+
+import numpy as np
+import torch
+
+from sked_ns.base_scene import resolve_base
+from sked_ns.metrics import intersection_over_sketch, psnr_outside, ssim_outside
+from sked_ns.render import load_pipeline, render_at, resized_mask
+from sked_ns.sketches import load_sketch_set
+
+
+ALEXNET_WEIGHTS = "alexnet-owt-7be5be79.pth"  # what torchvision fetches for torchmetrics' LPIPS
+
+
+def _lpips_or_reason():
+    """LPIPS needs AlexNet weights: use them only if already in the torch hub cache (no download)."""
+    cached = Path(torch.hub.get_dir()) / "checkpoints" / ALEXNET_WEIGHTS
+    if not cached.exists():
+        return None, f"unavailable: AlexNet weights for LPIPS are not in {cached.parent} (nothing is downloaded)"
+    try:
+        from torchmetrics.image.lpip import LearnedPerceptualImagePatchSimilarity
+
+        return LearnedPerceptualImagePatchSimilarity(normalize=True), None
+    except Exception as error:
+        return None, f"unavailable: LPIPS could not be built ({type(error).__name__}: {error})"
+
+
+def evaluate(edit_run: Path, base_run: Optional[Path] = None, sketches: Optional[Path] = None,
+             resolution: int = 256, device: str = "cpu") -> Dict:
+    """Metrics of every sketch view, their means, and the renders for the contact sheet."""
+    edit = resolve_base(edit_run)
+    if edit.family != "sked":
+        raise ValueError(f"{edit.run_dir / 'config.yml'}: not a SKED edit (method '{edit.method}').")
+    model_config = edit.model_config
+    base_run = Path(base_run) if base_run else Path(model_config.base_checkpoint).parent.parent
+    sketches = Path(sketches) if sketches else Path(model_config.sketches)
+    edit_pipeline = load_pipeline(edit.run_dir, device)
+    base_pipeline = load_pipeline(base_run, device)
+    sketch_set = load_sketch_set(sketches).in_model_frame(edit_pipeline.datamanager.dataparser_transform)
+    lpips, lpips_reason = _lpips_or_reason()
+
+    views, rows = [], []
+    for index, view in enumerate(sketch_set.views):
+        base = render_at(base_pipeline.model, view, resolution)
+        after = render_at(edit_pipeline.model, view, resolution)
+        mask = resized_mask(view, resolution)
+        entry = {
+            "view": index,
+            "psnr_outside": psnr_outside(after["rgb"], base["rgb"], mask),
+            "ssim_outside": ssim_outside(after["rgb"], base["rgb"], mask),
+            "ios": intersection_over_sketch(after["accumulation"], mask),
+            "ios_base": intersection_over_sketch(base["accumulation"], mask),
+        }
+        if lpips is not None:
+            keep = (~mask)[None, None].float()  # LPIPS of the images with the sketch blanked in both
+            to_nchw = lambda rgb: rgb.permute(2, 0, 1)[None] * keep  # noqa: E731
+            entry["lpips_outside"] = float(lpips(to_nchw(after["rgb"]), to_nchw(base["rgb"])))
+        views.append(entry)
+        overlay = after["rgb"].clone()
+        overlay[mask] = overlay[mask] * 0.5 + torch.tensor([0.5, 0.0, 0.0])
+        rows.append(torch.cat([base["rgb"], after["rgb"], overlay], dim=1))
+    keys = [key for key in views[0] if key != "view"]
+    result = {
+        "edit_run": str(edit.run_dir),
+        "base_run": str(base_run),
+        "sketches": str(sketches),
+        "resolution": resolution,
+        "views": views,
+        "mean": {key: float(np.mean([view[key] for view in views])) for key in keys},
+        "lpips_outside": "computed per view" if lpips is not None else lpips_reason,
+        "clip_similarity": "unavailable: CLIP similarity over 40 views is not implemented in this version",
+    }
+    return {"metrics": result, "sheet": torch.cat(rows, dim=0)}
+
+
+def entrypoint() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("config", type=Path, help="the edited run's config.yml (or its run folder)")
+    parser.add_argument("--base", type=Path, default=None, help="base run folder (default: the one the edit used)")
+    parser.add_argument("--sketches", type=Path, default=None, help="sketch set (default: the one the edit used)")
+    parser.add_argument("--output", type=Path, default=Path("sked_eval.json"), help="metrics JSON to write")
+    parser.add_argument("--sheet", type=Path, default=None, help="contact sheet PNG (default: next to --output)")
+    parser.add_argument("--resolution", type=int, default=256)
+    parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
+    args = parser.parse_args()
+    run = args.config.parent if args.config.name == "config.yml" else args.config
+    outcome = evaluate(run, args.base, args.sketches, args.resolution, args.device)
+    args.output.parent.mkdir(parents=True, exist_ok=True)
+    args.output.write_text(json.dumps(outcome["metrics"], indent=2))
+    sheet = args.sheet or args.output.with_suffix(".png")
+    import cv2
+
+    cv2.imwrite(str(sheet), (outcome["sheet"].numpy().clip(0, 1) * 255).round().astype(np.uint8)[..., ::-1])
+    mean = outcome["metrics"]["mean"]
+    print(f"PSNR outside {mean['psnr_outside']:.2f} dB, SSIM outside {mean['ssim_outside']:.3f}, "
+          f"IoS {mean['ios']:.3f} (base {mean['ios_base']:.3f}); LPIPS: {outcome['metrics']['lpips_outside']}\n"
+          f"wrote {args.output} and {sheet}")
+
+
+if __name__ == "__main__":
+    entrypoint()
