@@ -8,6 +8,7 @@ whose target is that scene with a hat, so the outcome is known.
 from __future__ import annotations
 
 import hashlib
+import math
 import shutil
 from pathlib import Path
 
@@ -285,3 +286,11 @@ def test_sked_eval_reports_the_paper_metrics(scene, edited, tmp_path):
     assert metrics["lpips_outside"].startswith("unavailable") or "lpips_outside" in metrics["views"][0]
     assert metrics["clip_similarity"].startswith("unavailable")
     assert (tmp_path / "eval.png").exists()
+
+
+def test_eval_images_need_no_lpips(scene, edited):
+    pipeline = edited["trainer"].pipeline
+    metrics, images = pipeline.get_eval_image_metrics_and_images(step=0)
+    assert {"psnr", "ssim"} <= set(metrics) and "lpips" not in metrics
+    assert all(math.isfinite(value) for value in metrics.values())
+    assert "img" in images and "preservation_weight" in images
