@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import warnings
 from pathlib import Path
 from typing import Optional
 
@@ -145,7 +146,16 @@ def run(output: Path, beta: float = 0.025, size: int = 128, iterations: int = 10
     return summary
 
 
+def quiet_third_party_warnings() -> None:
+    """nerfstudio 1.1.5 on torch 2.14 warns on every camera call; keep the demo's output readable."""
+    warnings.filterwarnings("ignore", category=FutureWarning)
+    warnings.filterwarnings("ignore", message=".*non-tuple sequence for multidimensional indexing.*")
+    warnings.filterwarnings("ignore", message=".*DataLoader will create.*")
+    warnings.filterwarnings("ignore", message=".*Converting a tensor with requires_grad=True to a scalar.*")
+
+
 def entrypoint() -> None:
+    quiet_third_party_warnings()
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--output", type=Path, default=Path("demo_output"), help="folder for everything the demo writes")
     parser.add_argument("--beta", type=float, default=0.025, help="preservation falloff, image widths")

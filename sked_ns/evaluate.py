@@ -87,6 +87,9 @@ def evaluate(edit_run: Path, base_run: Optional[Path] = None, sketches: Optional
 
 
 def entrypoint() -> None:
+    from sked_ns.demo import quiet_third_party_warnings
+
+    quiet_third_party_warnings()
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("config", type=Path, help="the edited run's config.yml (or its run folder)")
     parser.add_argument("--base", type=Path, default=None, help="base run folder (default: the one the edit used)")

@@ -77,6 +77,13 @@ class SkedTrainer(Trainer):
         self.autocast_dtype = torch.float16 if self.device.startswith("cuda") else torch.bfloat16
         super().setup(test_mode=test_mode)
 
+    def _load_checkpoint(self) -> None:
+        if self.config.load_dir is None and self.config.load_checkpoint is None:
+            # Not "training from scratch": the model already holds the base's weights.
+            CONSOLE.print(f"Edit starts at step 0 from the base {self.config.pipeline.model.base_checkpoint}")
+            return
+        super()._load_checkpoint()
+
     def train(self) -> None:
         # nerfstudio runs max_num_iterations more steps after a resume; an edit's length is its total.
         self.config.max_num_iterations = max(self.config.max_num_iterations - self._start_step, 1)
