@@ -102,7 +102,7 @@ def run(output: Path, beta: float = 0.025, size: int = 128, iterations: int = 10
     from sked_ns.render import load_pipeline, render_at, resized_mask
 
     check_beta(beta)
-    output = Path(output)
+    output = Path(output).resolve()  # absolute paths in config.yml: ns-* commands work from anywhere
     if output.exists() and any(output.iterdir()) and not (output / MARKER).exists():
         raise FileExistsError(f"{output} exists and was not made by sked-demo: choose another --output.")
     output.mkdir(parents=True, exist_ok=True)

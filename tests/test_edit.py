@@ -294,3 +294,26 @@ def test_eval_images_need_no_lpips(scene, edited):
     assert {"psnr", "ssim"} <= set(metrics) and "lpips" not in metrics
     assert all(math.isfinite(value) for value in metrics.values())
     assert "img" in images and "preservation_weight" in images
+
+
+@pytest.mark.parametrize(
+    "exporter, arguments, produced",
+    [
+        ("pointcloud", ["--num-points", "2000", "--remove-outliers", "False", "--normal-method", "open3d",
+                        "--save-world-frame", "False"], "point_cloud.ply"),
+        ("tsdf", ["--resolution", "32", "--batch-size", "2", "--downscale-factor", "2", "--texture-method", "tsdf"],
+         "tsdf_mesh.ply"),
+    ],
+)
+def test_ns_export_works_on_an_edited_scene(edited, tmp_path, exporter, arguments, produced):
+    import shutil as _shutil
+    import subprocess
+    import sys
+
+    ns_export = _shutil.which("ns-export", path=str(Path(sys.executable).parent)) or _shutil.which("ns-export")
+    result = subprocess.run(
+        [ns_export, exporter, "--load-config", str(edited["run"] / "config.yml"), "--output-dir", str(tmp_path),
+         *arguments], capture_output=True, text=True, timeout=600,
+    )
+    assert result.returncode == 0, result.stderr[-3000:]
+    assert (tmp_path / produced).stat().st_size > 1000
