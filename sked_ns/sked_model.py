@@ -201,7 +201,6 @@ class SkedModel(NerfactoModel):
         low = torch.tensor(self.edit_box.min, dtype=torch.float32)
         high = torch.tensor(self.edit_box.max, dtype=torch.float32)
         diagonal = float(torch.linalg.norm(high - low).clamp_min(1e-6))
-        self._edit_box_bounds = (low, high)
 
         def boosted(density_fn):
             def density(positions: Tensor, times: Optional[Tensor] = None) -> Tensor:
