@@ -30,11 +30,6 @@ from sked_ns.sketches import DataparserTransform, SketchSet, load_sketch_set, sa
 MARKER = ".sked-demo"  # marks a folder the demo made, so a rerun may replace it
 
 
-def to_model(points: torch.Tensor, transform: DataparserTransform) -> torch.Tensor:
-    matrix = torch.as_tensor(transform.transform, dtype=points.dtype)
-    return (points @ matrix[:, :3].T + matrix[:, 3]) * transform.scale
-
-
 def overlay(rgb: np.ndarray, weight: np.ndarray, hit: np.ndarray) -> np.ndarray:
     """Tint the surface red where it may change (w near 0), leave it as is where it is kept."""
     editable = (1.0 - weight)[..., None] * hit[..., None]
@@ -46,7 +41,7 @@ def weight_slice(field: SketchDistanceField, transform: DataparserTransform, bet
     axis = np.linspace(-1.0, 1.0, size)
     x, z = np.meshgrid(axis, axis[::-1], indexing="xy")
     points = torch.tensor(np.stack([x, np.zeros_like(x), z], -1).reshape(-1, 3), dtype=torch.float32)
-    weight = field.preservation_weight(to_model(points, transform), beta).reshape(size, size).numpy()
+    weight = field.preservation_weight(transform.points_to_model(points), beta).reshape(size, size).numpy()
     heat = cv2.applyColorMap((weight * 255).astype(np.uint8), cv2.COLORMAP_VIRIDIS)[..., ::-1] / 255.0
     inside = (demo_scene.sphere_sdf(points) < 0).reshape(size, size).numpy()
     heat[inside] = heat[inside] * 0.6 + 0.4  # outline the base object
@@ -59,7 +54,7 @@ def preservation_figure(sketches: SketchSet, transform: DataparserTransform, bet
     field = SketchDistanceField(model_sketches.views)
     edit_box = compute_edit_box(model_sketches.views, scene_box=np.array([[-1.0] * 3, [1.0] * 3]))
     render = demo_scene.render(demo_scene.edited_sdf, demo_scene.orbit_pose(60.0, 25.0, 2.4), 1.2 * size, size, size)
-    weight = field.preservation_weight(to_model(render["points"], transform), beta)
+    weight = field.preservation_weight(transform.points_to_model(render["points"]), beta)
     weight = torch.where(render["hit"], weight, torch.ones_like(weight)).numpy()
     hit = render["hit"].numpy()
     on_hat = (demo_scene.hat_sdf(render["points"]) < 2e-3).numpy() & hit

@@ -88,10 +88,7 @@ def build_demo_base(
         pipeline = config.pipeline.setup(device="cpu", test_mode="val")
     outputs = pipeline.datamanager.train_dataparser_outputs
     transform = DataparserTransform(outputs.dataparser_transform.numpy().astype(np.float64), float(outputs.dataparser_scale))
-    rotation = torch.tensor(transform.transform[:, :3], dtype=torch.float32)
-    offset = torch.tensor(transform.transform[:, 3], dtype=torch.float32)
-    to_data = lambda p: (p / transform.scale - offset) @ rotation  # noqa: E731  (model -> data frame)
-    centre = offset * transform.scale  # the object's centre (data origin) in the model frame
+    centre = transform.points_to_model(torch.zeros(3))  # the object's centre (data origin) in the model frame
 
     model = pipeline.model
     parameters = list(model.field.parameters()) + list(model.proposal_networks.parameters())
@@ -102,7 +99,7 @@ def build_demo_base(
         near = centre + (torch.rand(points_per_step // 2, 3) * 2 - 1) * radius
         anywhere = torch.rand(points_per_step // 4, 3) * 2 - 1
         positions = torch.cat([near, anywhere, _uncontract(torch.rand(points_per_step // 4, 3) * 4 - 2)])
-        data_positions = to_data(positions)
+        data_positions = transform.points_to_data(positions)
         with torch.no_grad():
             # SDF in model units; a 0.003-wide soft surface: about one cell of the finest grid.
             target_density = soft_density(sdf(data_positions) * transform.scale, 0.003)

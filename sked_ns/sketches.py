@@ -29,6 +29,7 @@ from typing import List, Literal, Optional
 
 import cv2
 import numpy as np
+import torch
 
 from sked_ns.cameras import check_camera_to_world
 
@@ -64,6 +65,22 @@ class DataparserTransform:
         rotation = self.transform[:, :3] @ camera_to_world[:, :3]
         origin = (self.transform[:, :3] @ camera_to_world[:, 3] + self.transform[:, 3]) * self.scale
         return np.concatenate([rotation, origin[:, None]], axis=1)
+
+    def invert(self, camera_to_world: np.ndarray) -> np.ndarray:
+        """Map a 3x4 model-frame pose back into the data frame (the dataparser's rotation is rigid)."""
+        rotation_t = self.transform[:, :3].T
+        origin = rotation_t @ (camera_to_world[:, 3] / self.scale - self.transform[:, 3])
+        return np.concatenate([rotation_t @ camera_to_world[:, :3], origin[:, None]], axis=1)
+
+    def points_to_model(self, points: "torch.Tensor") -> "torch.Tensor":
+        """Data-frame points (..., 3) -> model frame."""
+        matrix = torch.as_tensor(self.transform, dtype=points.dtype, device=points.device)
+        return (points @ matrix[:, :3].T + matrix[:, 3]) * self.scale
+
+    def points_to_data(self, points: "torch.Tensor") -> "torch.Tensor":
+        """Model-frame points (..., 3) -> data frame."""
+        matrix = torch.as_tensor(self.transform, dtype=points.dtype, device=points.device)
+        return (points / self.scale - matrix[:, 3]) @ matrix[:, :3]
 
 
 @dataclass(frozen=True)

@@ -154,3 +154,21 @@ def test_bounding_box_covers_every_contour():
     mask[15:18, 20:27] = True
     view = SketchView(mask=mask, camera_to_world=np.eye(4)[:3], fl_x=10, fl_y=10, cx=15, cy=10)
     assert view.bounding_box() == (3, 2, 27, 18)
+
+
+def test_dataparser_transform_inverts_and_maps_points(rng):
+    from sked_ns.demo_scene import orbit_pose
+
+    angle = 0.7
+    rotation = np.array([[1, 0, 0], [0, np.cos(angle), -np.sin(angle)], [0, np.sin(angle), np.cos(angle)]])
+    transform = DataparserTransform(np.concatenate([rotation, [[0.3], [0.1], [-0.5]]], axis=1), scale=0.4)
+    pose = orbit_pose(30.0, 20.0, 2.0)
+    np.testing.assert_allclose(transform.invert(transform.apply(pose)), pose, atol=1e-12)
+    import torch
+
+    points = torch.tensor(rng.normal(size=(10, 3)))
+    moved = transform.points_to_model(points)
+    np.testing.assert_allclose(moved.numpy(), ((rotation @ points.numpy().T).T + [0.3, 0.1, -0.5]) * 0.4, atol=1e-12)
+    np.testing.assert_allclose(transform.points_to_data(moved).numpy(), points.numpy(), atol=1e-12)
+    # A camera's origin maps like a point.
+    np.testing.assert_allclose(transform.apply(pose)[:, 3], transform.points_to_model(torch.tensor(pose[:, 3])).numpy())

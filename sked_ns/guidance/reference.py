@@ -12,7 +12,6 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Dict, Literal, Optional, Type
 
-import numpy as np
 import torch
 from torch import Tensor
 
@@ -35,21 +34,15 @@ class ReferenceGuidance(Guidance):
     needs_base_render = True
 
     def prepare(self, prompt: Optional[str], device: str, context: Dict) -> None:
-        # The analytic target lives in the data frame: map cameras back from the model frame.
-        transform = context["dataparser_transform"]
-        rotation = np.asarray(transform.transform)[:, :3]
-        self._to_data = lambda pose: np.concatenate(
-            [rotation.T @ pose[:, :3], (rotation.T @ (pose[:, 3] / transform.scale - transform.transform[:, 3]))[:, None]], 1
-        )
-        self._scale = transform.scale
-        self.device = device
+        # The analytic target lives in the data frame: cameras are mapped back from the model frame.
+        self.transform = context["dataparser_transform"]
 
     def target_image(self, view: RenderedView) -> tuple[Tensor, Tensor]:
         """Target colour (1, 3, h, w) and where it differs from the base scene (1, 1, h, w)."""
         from sked_ns import demo_scene
 
         _, _, height, width = view.image.shape
-        pose = self._to_data(view.camera_to_world)
+        pose = self.transform.invert(view.camera_to_world)
         # Focal lengths are in pixels, so the frame's scale does not change them.
         target = demo_scene.render(demo_scene.edited_sdf, pose, view.focal, width, height)
         base = demo_scene.render(demo_scene.sphere_sdf, pose, view.focal, width, height)
