@@ -11,7 +11,8 @@ from __future__ import annotations
 import json
 import math
 from pathlib import Path
-from typing import Callable
+from dataclasses import dataclass
+from typing import Callable, Optional, Sequence, Tuple
 
 import cv2
 import numpy as np
@@ -44,22 +45,41 @@ def edited_sdf(points: Tensor) -> Tensor:
     return torch.minimum(sphere_sdf(points), hat_sdf(points))
 
 
-def albedo(points: Tensor) -> Tensor:
-    """Blue-ish sphere with a warm stripe, red hat: easy to tell apart in renders."""
-    on_hat = hat_sdf(points) < sphere_sdf(points)
+def handle_sdf(points: Tensor) -> Tensor:
+    """A torus standing on the sphere's +x side, like a mug handle."""
+    local = points - points.new_tensor([0.55, 0.0, 0.05])
+    ring = torch.stack([torch.sqrt(local[..., 0] ** 2 + local[..., 2] ** 2) - 0.2, local[..., 1]], dim=-1)
+    return ring.norm(dim=-1) - 0.06
+
+
+def antenna_sdf(points: Tensor) -> Tensor:
+    """A thin rod standing on top, with a ball at its tip: a small, thin edit."""
+    local = points - points.new_tensor([0.0, 0.0, 0.64])
+    radial = local[..., :2].norm(dim=-1) - 0.04
+    axial = local[..., 2].abs() - 0.16
+    rod = torch.stack([radial.clamp_min(0), axial.clamp_min(0)], dim=-1).norm(dim=-1) + torch.maximum(radial, axial).clamp_max(0)
+    ball = (points - points.new_tensor([0.0, 0.0, 0.82])).norm(dim=-1) - 0.07
+    return torch.minimum(rod, ball)
+
+
+def albedo(points: Tensor, edit_sdf: Callable[[Tensor], Tensor] = hat_sdf) -> Tensor:
+    """Blue-ish sphere with a warm stripe, red edit: easy to tell apart in renders."""
+    on_edit = edit_sdf(points) < sphere_sdf(points)
     stripe = (torch.sin(points[..., 0] * 9.0) > 0.6).unsqueeze(-1)
     sphere = torch.where(stripe, points.new_tensor([0.95, 0.75, 0.25]), points.new_tensor([0.25, 0.45, 0.85]))
-    return torch.where(on_hat.unsqueeze(-1), points.new_tensor([0.85, 0.15, 0.15]), sphere)
+    return torch.where(on_edit.unsqueeze(-1), points.new_tensor([0.85, 0.15, 0.15]), sphere)
 
 
-def surface_colour(points: Tensor, sdf: Callable[[Tensor], Tensor] = edited_sdf) -> Tensor:
+def surface_colour(
+    points: Tensor, sdf: Callable[[Tensor], Tensor] = edited_sdf, edit_sdf: Callable[[Tensor], Tensor] = hat_sdf
+) -> Tensor:
     """Albedo under a fixed sun and sky: a function of position only, so a NeRF can match it."""
     offsets = torch.eye(3, dtype=points.dtype) * 1e-3
     normal = torch.stack([sdf(points + o) - sdf(points - o) for o in offsets], dim=-1)
     normal = normal / normal.norm(dim=-1, keepdim=True).clamp_min(1e-8)
     sun = points.new_tensor([0.4, -0.5, 0.77])
     light = 0.35 + 0.4 * (normal * sun).sum(-1).clamp_min(0) + 0.25 * (0.5 + 0.5 * normal[..., 2])
-    return (albedo(points) * light[..., None]).clamp(0, 1)
+    return (albedo(points, edit_sdf) * light[..., None]).clamp(0, 1)
 
 
 def orbit_pose(azimuth_deg: float, elevation_deg: float, radius: float) -> np.ndarray:
@@ -71,7 +91,8 @@ def orbit_pose(azimuth_deg: float, elevation_deg: float, radius: float) -> np.nd
 
 
 def render(
-    sdf: Callable[[Tensor], Tensor], camera_to_world: np.ndarray, focal: float, width: int, height: int
+    sdf: Callable[[Tensor], Tensor], camera_to_world: np.ndarray, focal: float, width: int, height: int,
+    edit_sdf: Callable[[Tensor], Tensor] = hat_sdf,
 ) -> dict[str, Tensor]:
     """Sphere-trace one view: rgb (h, w, 3), hit mask (h, w) and world hit points (h, w, 3)."""
     pose = torch.as_tensor(camera_to_world, dtype=torch.float32)
@@ -86,7 +107,7 @@ def render(
         travelled = travelled + distance.clamp_max(1.0)
     points = origin + travelled[..., None] * directions
     hit = sdf(points).abs() < 1e-3
-    rgb = torch.where(hit[..., None], surface_colour(points, sdf), torch.full_like(points, BACKGROUND))
+    rgb = torch.where(hit[..., None], surface_colour(points, sdf, edit_sdf), torch.full_like(points, BACKGROUND))
     return {"rgb": rgb.clamp(0, 1), "hit": hit, "points": points}
 
 
@@ -116,18 +137,47 @@ def write_demo_dataset(folder: Path, num_views: int = 24, size: int = 96, sdf=sp
     return path
 
 
-def demo_sketch_set(size: int = 128, views=((20.0, 20.0), (110.0, 30.0))) -> SketchSet:
-    """Sketches of the hat seen from two views: the silhouette of the hat where it is visible.
+@dataclass(frozen=True)
+class EditScene:
+    """A benchmark edit of the demo sphere: what is added, and the views it is sketched from."""
 
-    Poses are in the demo dataset's data frame (the world frame above).
-    """
-    focal = 1.2 * size
-    sketch_views = []
-    for azimuth, elevation in views:
-        pose = orbit_pose(azimuth, elevation, 2.4)
-        hat_hits = render(hat_sdf, pose, focal, size, size)["hit"].numpy()
-        mask = cv2.dilate(hat_hits.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)
-        sketch_views.append(
-            SketchView(mask=mask, camera_to_world=pose, fl_x=focal, fl_y=focal, cx=size / 2, cy=size / 2, name=f"demo@{azimuth:g}")
-        )
-    return SketchSet(views=sketch_views, frame="data")
+    name: str
+    edit_sdf: Callable[[Tensor], Tensor]
+    sketch_views: Tuple[Tuple[float, float], ...]
+    """(azimuth, elevation) in degrees, cameras at radius 2.4 looking at the origin."""
+    description: str = ""
+
+    def target_sdf(self, points: Tensor) -> Tensor:
+        return torch.minimum(sphere_sdf(points), self.edit_sdf(points))
+
+    def render_target(self, camera_to_world: np.ndarray, focal: float, width: int, height: int) -> dict[str, Tensor]:
+        return render(self.target_sdf, camera_to_world, focal, width, height, edit_sdf=self.edit_sdf)
+
+    def sketch_set(self, size: int = 128, views: Optional[Sequence[Tuple[float, float]]] = None) -> SketchSet:
+        """Masks = the added part's silhouette from each view; poses in the dataset's data frame."""
+        focal = 1.2 * size
+        sketch_views = []
+        for azimuth, elevation in views or self.sketch_views:
+            pose = orbit_pose(azimuth, elevation, 2.4)
+            hits = render(self.edit_sdf, pose, focal, size, size, edit_sdf=self.edit_sdf)["hit"].numpy()
+            mask = cv2.dilate(hits.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)
+            sketch_views.append(SketchView(mask=mask, camera_to_world=pose, fl_x=focal, fl_y=focal, cx=size / 2,
+                                           cy=size / 2, name=f"{self.name}@{azimuth:g}"))
+        return SketchSet(views=sketch_views, frame="data")
+
+
+SCENES = {
+    scene.name: scene
+    for scene in (
+        EditScene("hat", hat_sdf, ((20.0, 20.0), (110.0, 30.0)), "a wide cylinder on top; two views 90 deg apart"),
+        EditScene("handle", handle_sdf, ((-30.0, 10.0), (20.0, 15.0), (60.0, 35.0)),
+                  "a ring on the side; three views with a narrow 45 deg baseline"),
+        EditScene("antenna", antenna_sdf, ((0.0, 15.0), (150.0, 40.0)), "a thin rod and ball; two views 150 deg apart"),
+    )
+}
+"""Benchmark scenes: one base (the sphere), edits of different shapes, sizes and view baselines."""
+
+
+def demo_sketch_set(size: int = 128, views=None) -> SketchSet:
+    """The demo's sketches: the hat seen from two views."""
+    return SCENES["hat"].sketch_set(size, views)

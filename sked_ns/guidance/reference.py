@@ -21,8 +21,8 @@ from sked_ns.guidance.base import Guidance, GuidanceConfig, RenderedView
 @dataclass
 class ReferenceGuidanceConfig(GuidanceConfig):
     _target: Type = field(default_factory=lambda: ReferenceGuidance)
-    target: Literal["demo-hat"] = "demo-hat"
-    """Which target scene renders the references."""
+    target: Literal["hat", "handle", "antenna"] = "hat"
+    """Which benchmark edit of the demo sphere renders the references (demo_scene.SCENES)."""
     weight: float = 30.0
     """Multiplier of the image MSE. At 1 the silhouette loss outweighs it and fills the sketch
     with a grey haze (demo scene, 100 iterations: a grey hat, PSNR outside 30.9 dB); at 30 the
@@ -44,7 +44,7 @@ class ReferenceGuidance(Guidance):
         _, _, height, width = view.image.shape
         pose = self.transform.invert(view.camera_to_world)
         # Focal lengths are in pixels, so the frame's scale does not change them.
-        target = demo_scene.render(demo_scene.edited_sdf, pose, view.focal, width, height)
+        target = demo_scene.SCENES[self.config.target].render_target(pose, view.focal, width, height)
         base = demo_scene.render(demo_scene.sphere_sdf, pose, view.focal, width, height)
         changed = (target["rgb"] - base["rgb"]).abs().amax(dim=-1) > 1e-3
         return target["rgb"].permute(2, 0, 1)[None].to(view.image), changed[None, None].to(view.image)
