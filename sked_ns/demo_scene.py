@@ -9,7 +9,6 @@ of the edit at any pose. World frame: z up, object at the origin, radius ~0.5.
 from __future__ import annotations
 
 import json
-import math
 from pathlib import Path
 from dataclasses import dataclass
 from typing import Callable, Optional, Sequence, Tuple
@@ -19,7 +18,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from sked_ns.random_views import look_at
+from sked_ns.random_views import look_at, orbit_position
 from sked_ns.sketches import SketchSet, SketchView
 
 SPHERE_RADIUS = 0.5
@@ -83,11 +82,7 @@ def surface_colour(
 
 
 def orbit_pose(azimuth_deg: float, elevation_deg: float, radius: float) -> np.ndarray:
-    azimuth, elevation = math.radians(azimuth_deg), math.radians(elevation_deg)
-    position = radius * np.array(
-        [math.cos(elevation) * math.sin(azimuth), -math.cos(elevation) * math.cos(azimuth), math.sin(elevation)]
-    )
-    return look_at(position, np.zeros(3))
+    return look_at(orbit_position(azimuth_deg, elevation_deg, radius), np.zeros(3))
 
 
 def render(

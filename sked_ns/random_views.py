@@ -52,13 +52,17 @@ class RandomViewSampler:
         elevation = lerp(self.elevation_range_deg, u[1])
         azimuth = lerp(self.azimuth_range_deg, u[2])
         fov = lerp(self.fov_range_deg, u[3])
-        world_azimuth = math.radians(azimuth + self.front_azimuth_deg)
-        el = math.radians(elevation)
-        position = self.centre + radius * np.array(
-            [math.cos(el) * math.sin(world_azimuth), -math.cos(el) * math.cos(world_azimuth), math.sin(el)]
-        )
+        position = self.centre + orbit_position(azimuth + self.front_azimuth_deg, elevation, radius)
         target = self.centre + self.jitter * self.radius * (u[4] - 0.5)
         return look_at(position, target), fov, view_direction(azimuth, elevation)
+
+
+def orbit_position(azimuth_deg: float, elevation_deg: float, radius: float) -> np.ndarray:
+    """Point on a z-up sphere; azimuth 0 is the -y side, increasing towards +x."""
+    azimuth, elevation = math.radians(azimuth_deg), math.radians(elevation_deg)
+    return radius * np.array(
+        [math.cos(elevation) * math.sin(azimuth), -math.cos(elevation) * math.cos(azimuth), math.sin(elevation)]
+    )
 
 
 def look_at(position: np.ndarray, target: np.ndarray) -> np.ndarray:

@@ -5,22 +5,15 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Dict
 
-import cv2
-import numpy as np
 import torch
 
+from sked_ns.sked_datamanager import sketch_view_at
 from sked_ns.sketches import SketchView
 
 
 def render_at(model, view: SketchView, resolution: int) -> Dict[str, torch.Tensor]:
     """rgb (h, w, 3) and accumulation (h, w) of `model` at `view` (model frame), longer side `resolution`."""
-    from sked_ns.sked_datamanager import cameras_of
-
-    scale = resolution / max(view.width, view.height)
-    width, height = max(1, round(view.width * scale)), max(1, round(view.height * scale))
-    sx, sy = width / view.width, height / view.height
-    camera = cameras_of(torch.tensor(view.camera_to_world[None], dtype=torch.float32),
-                        view.fl_x * sx, view.fl_y * sy, view.cx * sx, view.cy * sy, width, height).to(model.device)
+    camera = sketch_view_at(view, resolution)[0].to(model.device)
     was_training = model.training
     model.eval()
     with torch.no_grad():
@@ -30,9 +23,8 @@ def render_at(model, view: SketchView, resolution: int) -> Dict[str, torch.Tenso
 
 
 def resized_mask(view: SketchView, resolution: int) -> torch.Tensor:
-    scale = resolution / max(view.width, view.height)
-    size = (max(1, round(view.width * scale)), max(1, round(view.height * scale)))
-    return torch.from_numpy(cv2.resize(view.mask.astype(np.float32), size, interpolation=cv2.INTER_AREA) > 0.5)
+    """The mask at the resolution `render_at` renders (the same one L_sil uses)."""
+    return sketch_view_at(view, resolution)[1]
 
 
 def load_pipeline(run_dir: Path, device: str = "cpu"):

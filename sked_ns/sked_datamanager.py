@@ -20,7 +20,7 @@ from nerfstudio.data.datamanagers.base_datamanager import VanillaDataManager, Va
 
 from sked_ns.edit_box import EditBox
 from sked_ns.random_views import RandomViewSampler, focal_from_fov
-from sked_ns.sketches import DataparserTransform, SketchSet
+from sked_ns.sketches import DataparserTransform, SketchSet, SketchView
 
 
 @dataclass
@@ -51,6 +51,17 @@ def cameras_of(poses: torch.Tensor, fx, fy, cx, cy, width: int, height: int) -> 
     )
 
 
+def sketch_view_at(view: SketchView, resolution: int) -> Tuple[Cameras, torch.Tensor]:
+    """A sketch view's camera and mask rescaled so the longer side is `resolution` pixels."""
+    scale = resolution / max(view.width, view.height)
+    width, height = max(1, round(view.width * scale)), max(1, round(view.height * scale))
+    sx, sy = width / view.width, height / view.height
+    mask = cv2.resize(view.mask.astype(np.float32), (width, height), interpolation=cv2.INTER_AREA) > 0.5
+    camera = cameras_of(torch.tensor(view.camera_to_world[None], dtype=torch.float32),
+                        view.fl_x * sx, view.fl_y * sy, view.cx * sx, view.cy * sy, width, height)
+    return camera, torch.from_numpy(mask)
+
+
 class SkedDataManager(VanillaDataManager):
     config: SkedDataManagerConfig
 
@@ -63,14 +74,9 @@ class SkedDataManager(VanillaDataManager):
         """Precompute the sketch views' rays and masks, and the random-view sampler."""
         rays, masks = [], []
         for view in sketch_set.views:
-            scale = silhouette_resolution / max(view.width, view.height)
-            width, height = max(1, round(view.width * scale)), max(1, round(view.height * scale))
-            sx, sy = width / view.width, height / view.height
-            mask = cv2.resize(view.mask.astype(np.float32), (width, height), interpolation=cv2.INTER_AREA) > 0.5
-            camera = cameras_of(torch.tensor(view.camera_to_world[None], dtype=torch.float32),
-                                view.fl_x * sx, view.fl_y * sy, view.cx * sx, view.cy * sy, width, height)
+            camera, mask = sketch_view_at(view, silhouette_resolution)
             rays.append(camera.generate_rays(camera_indices=0, keep_shape=True).flatten())
-            masks.append(torch.from_numpy(mask))
+            masks.append(mask)
         # Views may differ in size: rays and masks are kept flat, in the same order.
         self.sketch_rays: RayBundle = _concatenate(rays).to(self.device)
         self.sketch_masks = torch.cat([mask.flatten() for mask in masks]).float().to(self.device)
