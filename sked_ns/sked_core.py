@@ -1,0 +1,306 @@
+"""What SKED adds to any NeRF model, whatever its sampler (nerfacto's proposals, NGP's grid).
+
+Per iteration (paper Eq. 6): L = L_guidance + lambda_pres L_pres + lambda_sil L_sil
++ lambda_sp L_sp. L_pres and L_sp come from one random view aimed at the edit box, L_sil
+from the fixed sketch views at reduced resolution. The frozen base is kept out of the
+module tree: it is never optimised, never saved, and follows `.to()`.
+
+A model using `SkedMixin` supplies four things: `_render(ray_bundle)` (outputs plus the
+samples and field outputs behind them), `render_base`, `_sampling_losses` and the list of
+weight prefixes its base checkpoint must provide.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import copy
+import warnings
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Dict, List, Literal, Optional, Sequence, Tuple
+
+import torch
+import torchmetrics.image.lpip as lpip_module
+from nerfstudio.cameras.rays import RayBundle, RaySamples
+from nerfstudio.field_components.encodings import HashEncoding
+from nerfstudio.field_components.field_heads import FieldHeadNames
+from torch import Tensor
+
+from sked_ns.base_scene import read_model_state, uses_tcnn
+from sked_ns.edit_box import EditBox, compute_edit_box
+from sked_ns.guidance import Guidance, ReferenceGuidanceConfig, RenderedView, StableDiffusionGuidanceConfig
+from sked_ns.losses import occupancy_log_probabilities, preservation_loss, silhouette_loss, sparsity_loss
+from sked_ns.preservation import SketchDistanceField, check_beta
+from sked_ns.sketches import SketchSet
+
+
+@dataclass
+class SkedOptions:
+    """SKED's settings, shared by the nerfacto and instant-ngp edit models."""
+
+    sketches: Optional[Path] = None
+    """Sketch-set folder (sketches.json + PNG masks); `ns-train sked --sketches` sets it."""
+    prompt: Optional[str] = None
+    """What should be in the sketched region; none with Stable Diffusion guidance = carve it away."""
+    base_checkpoint: Optional[Path] = None
+    """The base's step-*.ckpt; filled in from --load-dir."""
+    guidance: Literal["stable-diffusion", "reference"] = "stable-diffusion"
+    """Which guidance pulls the sketched region (reference: renders of a known target scene)."""
+    sds: StableDiffusionGuidanceConfig = field(default_factory=StableDiffusionGuidanceConfig)
+    reference: ReferenceGuidanceConfig = field(default_factory=ReferenceGuidanceConfig)
+    beta: float = 0.025
+    """Falloff of the preservation weight, in image widths (paper Eq. 4)."""
+    lambda_pres: float = 5.0
+    """Weight of L_pres (a mean over samples; the authors' 5e-6 multiplied a sum)."""
+    lambda_colour: float = 5.0
+    """Weight of the colour term inside L_pres."""
+    lambda_sil: float = 1.0
+    """Weight of L_sil."""
+    lambda_sp: float = 5e-4
+    """Weight of the sparsity (accumulation entropy) loss."""
+    lambda_carve: float = 5.0
+    """Weight of the carving loss (empty the sketched region) when there is no prompt."""
+    occupancy_threshold: float = 5.0
+    """Base density above which a sample counts as occupied."""
+    preservation_delta: float = 0.07
+    """Fixed step length turning density into occupancy in L_pres."""
+    guidance_resolution: int = 128
+    """Side of the random view rendered for guidance (authors: 128, upsampled for SD)."""
+    silhouette_resolution: int = 128
+    """Longer side of the sketch views rendered for L_sil (authors: 128)."""
+    edit_box_warmup: int = 1000
+    """Iterations during which the empty edit box is kept sampled."""
+    compile_lookup: bool = True
+    """torch.compile the sketch-distance lookup on CUDA."""
+
+
+@contextlib.contextmanager
+def without_lpips():
+    """nerfstudio models build LPIPS (an AlexNet download) in populate_modules; SKED needs none."""
+    original = lpip_module.LearnedPerceptualImagePatchSimilarity
+    lpip_module.LearnedPerceptualImagePatchSimilarity = lambda *args, **kwargs: None
+    try:
+        yield
+    finally:
+        lpip_module.LearnedPerceptualImagePatchSimilarity = original
+
+
+class SkedMixin:
+    """Sketch geometry, the frozen base, the losses and evaluation images, for any sampler."""
+
+    config: SkedOptions
+    BASE_PREFIXES: Tuple[str, ...] = ("field.",)
+    """Checkpoint keys the base must provide and the edit starts from."""
+
+    # ---- set-up ---------------------------------------------------------------------------
+    def _setup_sked(self) -> None:
+        """Call after the parent's populate_modules."""
+        self.lpips = None
+        sketch_set: Optional[SketchSet] = self.kwargs.get("sketch_set")
+        if sketch_set is None:
+            raise ValueError("SKED needs a sketch set: pass --sketches <folder with sketches.json>.")
+        self.sketch_set = sketch_set
+        self.edit_box: EditBox = compute_edit_box(sketch_set.views, scene_box=self.scene_box.aabb.numpy())
+        self.sketch_field = SketchDistanceField(
+            sketch_set.views, compile=self.config.compile_lookup and torch.cuda.is_available()
+        )
+        # The appearance of random views is the average embedding: keep it as trained.
+        if getattr(self.field, "embedding_appearance", None) is not None:
+            self.field.embedding_appearance.requires_grad_(False)
+        warn_degenerate_settings(self.config, sketch_set)
+        self.guidance: Optional[Guidance] = None  # plain attribute: never in a checkpoint
+
+    def _load_base_weights(self) -> None:
+        """The editable modules <- the base's weights, after checking they fit."""
+        checkpoint = self.config.base_checkpoint
+        if checkpoint is None:
+            raise ValueError("No base checkpoint: run `ns-train sked --load-dir <base run or its nerfstudio_models>`.")
+        state = read_model_state(Path(checkpoint))
+        ours = self.state_dict()
+        if uses_tcnn(state) != uses_tcnn(ours):
+            trained, here = ("tiny-cuda-nn", "torch") if uses_tcnn(state) else ("torch", "tiny-cuda-nn")
+            raise ValueError(
+                f"{checkpoint}: the base was trained with the {trained} implementation, but this edit builds "
+                f"{here} modules, whose weights are laid out differently. "
+                + ("Install tinycudann here, or edit on the machine that trained the base."
+                   if uses_tcnn(state) else "Pass --pipeline.model.implementation torch.")
+            )
+        embedding = state.get("field.embedding_appearance.embedding.weight")
+        if embedding is not None and embedding.shape[0] != self.num_train_data:
+            raise ValueError(
+                f"{checkpoint}: the base was trained on {embedding.shape[0]} images but --data has "
+                f"{self.num_train_data}. Pass the base's own data and dataparser settings."
+            )
+        wanted = [key for key in ours if key.startswith(self.BASE_PREFIXES)]
+        missing = [key for key in wanted if key not in state]
+        mismatched = [key for key in wanted if key in state and state[key].shape != ours[key].shape]
+        if missing or mismatched:
+            raise ValueError(
+                f"{checkpoint}: the base's weights do not fit this model (missing {missing[:3]}, "
+                f"shape mismatch {mismatched[:3]}). Is --data the base's data, and the base a supported method?"
+            )
+        self.load_state_dict({key: state[key] for key in wanted}, strict=False)
+
+    def _freeze_base(self, *modules: torch.nn.Module) -> None:
+        # A list hides the frozen base from the module tree, and so from optimisers and checkpoints.
+        self._base = [copy.deepcopy(module).eval().requires_grad_(False) for module in modules]
+
+    @property
+    def base_field(self):
+        return self._base[0]
+
+    def _apply(self, fn, *args, **kwargs):
+        # `.to()`, `.cuda()`, `.half()` reach the hidden base too.
+        super()._apply(fn, *args, **kwargs)
+        for module in getattr(self, "_base", []):
+            module._apply(fn, *args, **kwargs)
+        return self
+
+    def _hash_grid_groups(self, **non_grid: torch.nn.Module) -> Dict[str, List[torch.nn.Parameter]]:
+        """Hash grids get their own group: method.md trains them at 10x the MLPs' rate."""
+        grids = {id(p) for module in self.modules() if isinstance(module, HashEncoding) for p in module.parameters()}
+        trainable = lambda module: [p for p in module.parameters() if p.requires_grad]  # noqa: E731
+        groups = {name: [p for p in trainable(module) if id(p) not in grids] for name, module in non_grid.items()}
+        groups["hash_grids"] = [p for p in trainable(self) if id(p) in grids]
+        return groups
+
+    # ---- model-specific hooks ------------------------------------------------------------
+    def _render(self, ray_bundle: RayBundle) -> Tuple[Dict[str, Tensor], RaySamples, Dict]:
+        """Render with the editable field: (outputs, samples, field outputs at the samples)."""
+        raise NotImplementedError
+
+    def render_base(self, ray_bundle: RayBundle) -> Dict[str, Tensor]:
+        """The frozen base seen along `ray_bundle`."""
+        raise NotImplementedError
+
+    def _sampling_losses(self, rendered: Sequence[Dict[str, Tensor]]) -> Dict[str, Tensor]:
+        """Losses of the sampler itself (nerfacto's interlevel loss), over all renders of a step."""
+        return {}
+
+    def edit_box_boost(self) -> float:
+        """How strongly the edit box is still forced into the sampling (1 at step 0, 0 after warm-up)."""
+        return max(0.0, 1.0 - self.step / max(self.config.edit_box_warmup, 1))
+
+    # ---- shared --------------------------------------------------------------------------
+    def _collide(self, ray_bundle: RayBundle) -> RayBundle:
+        # Model.forward applies the collider; SKED's own renders bypass forward.
+        return self.collider(ray_bundle) if self.collider is not None else ray_bundle
+
+    def preservation_weight(self, positions: Tensor) -> Tensor:
+        """w for sample positions (..., 3) -> (..., 1)."""
+        return self.sketch_field.preservation_weight(positions.detach(), self.config.beta)[..., None]
+
+    @contextlib.contextmanager
+    def _average_appearance(self):
+        """Random and sketch views have no training image: use the evaluation appearance."""
+        was_training = self.field.training
+        self.field.train(False)
+        try:
+            yield
+        finally:
+            self.field.train(was_training)
+
+    def get_sked_loss_dict(
+        self,
+        random_view: RayBundle,
+        random_camera: Dict,
+        sketch_rays: Optional[RayBundle],
+        sketch_masks: Tensor,
+        step: int,
+    ) -> tuple[Dict[str, Tensor], Dict[str, Tensor], Dict[str, Tensor]]:
+        """All losses of one iteration; returns (outputs, losses, metrics)."""
+        config = self.config
+        losses: Dict[str, Tensor] = {}
+        metrics: Dict[str, Tensor] = {}
+        height, width = random_view.shape[:2]
+        with self._average_appearance():
+            view, samples, field_outputs = self._render(self._collide(random_view.flatten()))
+            sketch = self._render(self._collide(sketch_rays))[0] if sketch_rays is not None else None
+
+        # L_pres on the random view's samples.
+        weight = self.preservation_weight(samples.frustums.get_positions())
+        with torch.no_grad():
+            base_outputs = self.base_field(samples)
+        density_edit = field_outputs[FieldHeadNames.DENSITY]
+        losses["preservation_loss"] = config.lambda_pres * preservation_loss(
+            density_edit, field_outputs[FieldHeadNames.RGB], base_outputs[FieldHeadNames.DENSITY],
+            base_outputs[FieldHeadNames.RGB], weight, config.occupancy_threshold, config.preservation_delta,
+            config.lambda_colour,
+        )
+        losses["sparsity_loss"] = config.lambda_sp * sparsity_loss(view["accumulation"])
+        if is_carving(config):
+            # No prompt: empty the sketched region (occupancy -> 0 where w is small).
+            _, log_empty = occupancy_log_probabilities(density_edit, config.preservation_delta)
+            losses["carve_loss"] = config.lambda_carve * ((1 - weight) * -log_empty).mean()
+        else:
+            assert self.guidance is not None, "guidance is prepared by the pipeline before training"
+            as_image = lambda rgb: rgb.reshape(1, height, width, 3).permute(0, 3, 1, 2)  # noqa: E731
+            base_image = None
+            if self.guidance.needs_base_render:
+                with self._average_appearance():
+                    base_image = as_image(self.render_base(self._collide(random_view.flatten()))["rgb"])
+            rendered = RenderedView(image=as_image(view["rgb"]), camera_to_world=random_camera["camera_to_world"],
+                                    focal=random_camera["focal"], direction=random_camera["direction"],
+                                    base_image=base_image)
+            losses.update(self.guidance(rendered, step))
+            if sketch is not None:
+                accumulation = sketch["accumulation"].reshape(sketch_masks.shape)
+                losses["silhouette_loss"] = config.lambda_sil * silhouette_loss(accumulation, sketch_masks)
+                metrics["sketch_coverage"] = (accumulation.detach() > 0.5).float().mul(sketch_masks).sum() / sketch_masks.sum().clamp_min(1)
+        losses.update(self._sampling_losses([view] + ([sketch] if sketch is not None else [])))
+        metrics["mean_preservation_weight"] = weight.mean().detach()
+        metrics["edit_box_boost"] = torch.tensor(self.edit_box_boost())
+        bad = [name for name, value in losses.items() if not torch.isfinite(value).all()]
+        if bad:
+            metrics["nonfinite_losses"] = torch.tensor(float(len(bad)))
+        return view, losses, metrics
+
+    def get_image_metrics_and_images(self, outputs, batch):
+        """nerfstudio's evaluation images and PSNR/SSIM, without LPIPS."""
+        gt = self.renderer_rgb.blend_background(batch["image"].to(self.device))
+        predicted = outputs["rgb"]
+        gt_chw, predicted_chw = gt.permute(2, 0, 1)[None], predicted.permute(2, 0, 1)[None]
+        metrics = {"psnr": float(self.psnr(gt_chw, predicted_chw).item()), "ssim": float(self.ssim(gt_chw, predicted_chw))}
+        images = {"img": torch.cat([gt, predicted], dim=1), "accumulation": outputs["accumulation"]}
+        if "preservation_weight" in outputs:
+            images["preservation_weight"] = outputs["preservation_weight"]
+        return metrics, images
+
+
+def is_carving(config: SkedOptions) -> bool:
+    """Stable Diffusion guidance without a prompt removes what is in the sketches."""
+    return config.guidance == "stable-diffusion" and not (config.prompt and config.prompt.strip())
+
+
+def warn_degenerate_settings(config: SkedOptions, sketch_set: SketchSet) -> List[str]:
+    """Settings that run without error but cannot give a sensible edit get a clear warning."""
+    messages = []
+    if config.beta < 1e-3:
+        messages.append(f"beta = {config.beta:g} image widths is under a pixel at usual sizes: only the exact "
+                        "sketch rays may change and the edit cannot blend in (paper range 0.005-1).")
+    if config.beta > 1.0:
+        messages.append(f"beta = {config.beta:g} image widths: preservation weights are near 0 around the whole "
+                        "object, so the edit may change everything (paper range 0.005-1).")
+    if config.lambda_pres == 0:
+        messages.append("lambda_pres = 0: nothing preserves the base (the paper's no-preserve ablation).")
+    if config.lambda_sil == 0 and config.prompt:
+        messages.append("lambda_sil = 0: nothing makes the edit fill the sketches (the paper's no-silhouette ablation).")
+    for view in sketch_set.views:
+        covered = float(view.mask.mean())
+        if covered > 0.9:
+            messages.append(f"{view.name or 'a sketch view'}: the mask covers {covered:.0%} of the image, so almost "
+                            "nothing in that view is preserved.")
+    for message in messages:
+        warnings.warn(message, SkedSettingsWarning, stacklevel=2)
+    return messages
+
+
+class SkedSettingsWarning(UserWarning):
+    """A setting that runs but defeats the method."""
+
+
+def copy_architecture(target, base_model_config, names: Sequence[str]) -> None:
+    """Make the edit's modules the base's shape (hash grids, MLPs, samplers)."""
+    for name in names:
+        if hasattr(base_model_config, name):
+            setattr(target, name, copy.deepcopy(getattr(base_model_config, name)))
