@@ -1,4 +1,4 @@
-"""A tiny nerfacto base of the demo scene, built in seconds on a CPU.
+"""A tiny nerfacto (or instant-ngp) base of the demo scene, built in seconds on a CPU.
 
 Photometric training of even a tiny nerfacto takes many minutes on a CPU, so the demo and
 the tests fit the field directly to the analytic scene (density from its SDF, colour from
@@ -73,17 +73,40 @@ def nerfacto_config(data: Path, output_dir: Path, tiny: TinyNerfacto = TinyNerfa
     return config
 
 
+def ngp_config(data: Path, output_dir: Path, tiny: TinyNerfacto = TinyNerfacto()):
+    """`ns-train instant-ngp` config for the demo data: a coarse grid and long steps for the CPU."""
+    config = copy.deepcopy(method_configs["instant-ngp"])
+    config.output_dir = output_dir
+    config.experiment_name = "demo-base-ngp"
+    config.timestamp = "base"
+    config.machine.device_type = "cpu"
+    config.vis = "tensorboard"
+    config.pipeline.datamanager = VanillaDataManagerConfig(
+        data=data, dataparser=NerfstudioDataParserConfig(data=data), train_num_rays_per_batch=1024
+    )
+    model = config.pipeline.model
+    model.background_color = "white"
+    model.log2_hashmap_size = tiny.log2_hashmap_size
+    model.max_res = tiny.max_res
+    model.grid_resolution = 32
+    model.grid_levels = 2
+    model.render_step_size = 0.01
+    model.cone_angle = 0.0  # a bounded object, as instant-ngp-bounded
+    return config
+
+
 def soft_density(sdf_values: torch.Tensor, width: float) -> torch.Tensor:
     return PEAK_DENSITY * torch.sigmoid(-sdf_values / width)
 
 
 def build_demo_base(
     data: Path, output_dir: Path, steps: int = 300, points_per_step: int = 8192, seed: int = 0,
-    sdf=demo_scene.sphere_sdf, tiny: TinyNerfacto = TinyNerfacto(),
+    sdf=demo_scene.sphere_sdf, tiny: TinyNerfacto = TinyNerfacto(), method: str = "nerfacto",
 ) -> Path:
-    """Fit a tiny nerfacto to the analytic scene; returns the run folder (with config.yml)."""
+    """Fit a tiny nerfacto or instant-ngp to the analytic scene; returns the run folder (with config.yml)."""
     torch.manual_seed(seed)
-    config = nerfacto_config(Path(data), Path(output_dir), tiny)
+    make_config = {"nerfacto": nerfacto_config, "instant-ngp": ngp_config}[method]
+    config = make_config(Path(data), Path(output_dir), tiny)
     with _without_lpips():
         pipeline = config.pipeline.setup(device="cpu", test_mode="val")
     outputs = pipeline.datamanager.train_dataparser_outputs
@@ -91,7 +114,10 @@ def build_demo_base(
     centre = transform.points_to_model(torch.zeros(3))  # the object's centre (data origin) in the model frame
 
     model = pipeline.model
-    parameters = list(model.field.parameters()) + list(model.proposal_networks.parameters())
+    proposals = list(getattr(model, "proposal_networks", []))
+    parameters = list(model.field.parameters()) + [p for network in proposals for p in network.parameters()]
+    if method == "instant-ngp":
+        model.field.eval()  # fit the appearance NGP renders with (no per-image embedding)
     optimizer = torch.optim.Adam(parameters, lr=1e-2)
     radius = demo_scene.SPHERE_RADIUS * transform.scale * 1.6
     for _ in range(steps):
@@ -114,13 +140,21 @@ def build_demo_base(
         # Empty space must be really empty: rays integrate it over long distances.
         loss = loss + 0.01 * (field_outputs[FieldHeadNames.DENSITY].reshape(-1) * (target_density < 1e-2)).mean()
         loss = loss + (occupied * (field_outputs[FieldHeadNames.RGB].reshape(-1, 3) - target_rgb) ** 2).mean()
-        for network in model.proposal_networks:
+        for network in proposals:
             proposal = network.density_fn(positions[:, None]).reshape(-1)
             loss = loss + ((1 - torch.exp(-proposal * 0.05)) - target_alpha).pow(2).mean() * 10
         optimizer.zero_grad()
         loss.backward()
         optimizer.step()
 
+    if method == "instant-ngp":
+        with torch.no_grad():
+            # Every cell, as in instant-ngp's warm-up: occupancy = max over random points of density x step.
+            for _ in range(16):
+                model.occupancy_grid._update(
+                    step=0, occ_eval_fn=lambda x: model.field.density_fn(x) * model.config.render_step_size,
+                    ema_decay=1.0,
+                )
     run_dir = config.get_base_dir()
     models_dir = run_dir / "nerfstudio_models"
     models_dir.mkdir(parents=True, exist_ok=True)

@@ -18,7 +18,7 @@ import torch
 
 from sked_ns.base_scene import resolve_base
 from sked_ns.metrics import intersection_over_sketch, psnr_outside, ssim_outside
-from sked_ns.render import load_pipeline, render_at, resized_mask
+from sked_ns.render import load_pipeline, render_at, render_base_at, resized_mask
 from sked_ns.sketches import load_sketch_set
 
 
@@ -45,16 +45,21 @@ def evaluate(edit_run: Path, base_run: Optional[Path] = None, sketches: Optional
     if edit.family != "sked":
         raise ValueError(f"{edit.run_dir / 'config.yml'}: not a SKED edit (method '{edit.method}').")
     model_config = edit.model_config
+    own_base = base_run is None
     base_run = Path(base_run) if base_run else Path(model_config.base_checkpoint).parent.parent
     sketches = Path(sketches) if sketches else Path(model_config.sketches)
     edit_pipeline = load_pipeline(edit.run_dir, device)
-    base_pipeline = load_pipeline(base_run, device)
+    # The edit holds a frozen copy of its own base: render that unless another base is asked for.
+    base_pipeline = None if own_base else load_pipeline(base_run, device)
     sketch_set = load_sketch_set(sketches).in_model_frame(edit_pipeline.datamanager.dataparser_transform)
     lpips, lpips_reason = _lpips_or_reason()
 
     views, rows = [], []
     for index, view in enumerate(sketch_set.views):
-        base = render_at(base_pipeline.model, view, resolution)
+        if base_pipeline is None:
+            base = render_base_at(edit_pipeline.model, view, resolution)
+        else:
+            base = render_at(base_pipeline.model, view, resolution)
         after = render_at(edit_pipeline.model, view, resolution)
         mask = resized_mask(view, resolution)
         entry = {

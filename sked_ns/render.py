@@ -22,6 +22,23 @@ def render_at(model, view: SketchView, resolution: int) -> Dict[str, torch.Tenso
     return {"rgb": outputs["rgb"].cpu(), "accumulation": outputs["accumulation"][..., 0].cpu()}
 
 
+def render_base_at(model, view: SketchView, resolution: int) -> Dict[str, torch.Tensor]:
+    """Like `render_at`, with a SKED model's frozen copy of its base (exactly the base's weights)."""
+    camera = sketch_view_at(view, resolution)[0].to(model.device)
+    rays = camera.generate_rays(camera_indices=0, keep_shape=True)
+    height, width = rays.shape
+    rays = rays.flatten()
+    chunk = model.config.eval_num_rays_per_chunk
+    was_training = model.training
+    model.eval()
+    with torch.no_grad():
+        parts = [model.render_base(model._collide(rays[i : i + chunk])) for i in range(0, len(rays), chunk)]
+    model.train(was_training)
+    rgb = torch.cat([part["rgb"] for part in parts]).reshape(height, width, 3)
+    accumulation = torch.cat([part["accumulation"] for part in parts]).reshape(height, width)
+    return {"rgb": rgb.cpu(), "accumulation": accumulation.cpu()}
+
+
 def resized_mask(view: SketchView, resolution: int) -> torch.Tensor:
     """The mask at the resolution `render_at` renders (the same one L_sil uses)."""
     return sketch_view_at(view, resolution)[1]
@@ -33,6 +50,11 @@ def load_pipeline(run_dir: Path, device: str = "cpu"):
     from sked_ns.sked_model import _without_lpips
 
     run = resolve_base(run_dir)
+    if run.family == "instant-ngp" and not device.startswith("cuda"):
+        raise ValueError(
+            f"{run.run_dir / 'config.yml'}: nerfstudio renders instant-ngp runs with nerfacc's CUDA kernels only. "
+            "Use a GPU, or compare with a SKED edit's own frozen copy of its base (sked-eval without --base)."
+        )
     run.config.machine.device_type = device
     with _without_lpips():
         pipeline = run.config.pipeline.setup(device=device, test_mode="test")

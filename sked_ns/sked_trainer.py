@@ -10,16 +10,19 @@ earlier SKED run resumes it; add `--progressive True` to edit that result again 
 from __future__ import annotations
 
 import functools
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Optional, Type
 
 import torch
 from nerfstudio.engine.trainer import Trainer, TrainerConfig
+from nerfstudio.models.instant_ngp import InstantNGPModelConfig
 from nerfstudio.utils.rich_utils import CONSOLE
 
 from sked_ns.base_scene import resolve_base
-from sked_ns.sked_model import copy_base_architecture
+from sked_ns.sked_core import SkedOptions
+from sked_ns.sked_model import SkedModelConfig, copy_base_architecture
+from sked_ns.sked_ngp import SkedNGPModelConfig, copy_ngp_architecture
 
 
 @dataclass
@@ -48,23 +51,31 @@ def resolve_edit(config: SkedTrainerConfig) -> None:
     if base.family == "sked" and not config.progressive:
         # Resume: same architecture, base and sketch set as the interrupted run.
         previous = base.model_config
-        copy_base_architecture(model, previous)
+        model = config.pipeline.model = edit_model_config(model, previous)
         model.base_checkpoint = previous.base_checkpoint
         model.sketches = model.sketches or previous.sketches
         model.prompt = model.prompt or previous.prompt
         config.load_dir = base.checkpoint.parent
         CONSOLE.print(f"Resuming the SKED edit {base.run_dir} from {base.checkpoint.name}")
         return
-    if base.family == "instant-ngp":
-        raise ValueError(
-            f"{base.run_dir / 'config.yml'}: instant-ngp bases need the occupancy-grid SKED model, which needs "
-            "CUDA (nerfacc) and is not in this version yet; edit a nerfacto base."
-        )
-    copy_base_architecture(model, base.model_config)
+    model = config.pipeline.model = edit_model_config(model, base.model_config)
     model.base_checkpoint = base.checkpoint
     config.load_dir = None  # the base is not a run to resume: fresh optimisers, step 0
     config.load_step = None
     CONSOLE.print(f"Editing the {base.method} scene {base.run_dir} ({base.checkpoint.name})")
+
+
+def edit_model_config(model, base_model_config):
+    """The SKED model for the base's sampler (grid or proposals), shaped like the base, keeping SKED's options."""
+    wanted = SkedNGPModelConfig if isinstance(base_model_config, InstantNGPModelConfig) else SkedModelConfig
+    if not isinstance(model, wanted):
+        options = {option.name: getattr(model, option.name) for option in fields(SkedOptions)}
+        model = wanted(**options, eval_num_rays_per_chunk=model.eval_num_rays_per_chunk)
+    if wanted is SkedNGPModelConfig:
+        copy_ngp_architecture(model, base_model_config)
+    else:
+        copy_base_architecture(model, base_model_config)
+    return model
 
 
 class SkedTrainer(Trainer):

@@ -68,3 +68,13 @@ def scene(tmp_path_factory):
 @pytest.fixture
 def rng() -> np.random.Generator:
     return np.random.default_rng(0)
+
+
+@pytest.fixture(scope="session")
+def ngp_scene(scene):
+    """The same dataset and sketches with a tiny instant-ngp base (occupancy grid 2 x 32^3)."""
+    from sked_ns.demo_base import build_demo_base
+
+    run = build_demo_base(scene["data"], scene["root"] / "ngp-runs", steps=400, points_per_step=4096,
+                          method="instant-ngp")
+    return {**scene, "base": run}

@@ -1,0 +1,146 @@
+"""`ns-train sked` on an instant-ngp base: the occupancy-grid model, on the CPU (torch marcher)."""
+
+from __future__ import annotations
+
+import hashlib
+from pathlib import Path
+
+import pytest
+import torch
+
+from sked_ns.base_scene import read_model_state
+from sked_ns.edit_run import edit_config, run_edit
+from sked_ns.metrics import intersection_over_sketch, psnr_outside
+from sked_ns.render import load_pipeline, render_at, render_base_at, resized_mask
+from sked_ns.sked_ngp import SkedNGPModel, SkedNGPModelConfig
+from sked_ns.sked_trainer import resolve_edit
+
+ITERATIONS = 60
+
+
+def _digest(folder: Path) -> dict:
+    return {p.relative_to(folder): hashlib.sha256(p.read_bytes()).hexdigest() for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
+@pytest.fixture(scope="module")
+def ngp_edited(ngp_scene):
+    before = _digest(ngp_scene["base"])
+    config = edit_config(ngp_scene["base"], ngp_scene["data"], ngp_scene["sketches"], ngp_scene["root"] / "ngp-edits",
+                         iterations=ITERATIONS, guidance_resolution=24, silhouette_resolution=24, steps_per_save=30)
+    trainer = run_edit(config)
+    return {"trainer": trainer, "run": trainer.base_dir, "base_digest_before": before}
+
+
+def test_an_ngp_base_gets_the_occupancy_grid_model(ngp_scene, tmp_path):
+    config = edit_config(ngp_scene["base"] / "nerfstudio_models", ngp_scene["data"], ngp_scene["sketches"], tmp_path)
+    resolve_edit(config)
+    model = config.pipeline.model
+    assert isinstance(model, SkedNGPModelConfig)
+    assert (model.grid_resolution, model.grid_levels, model.render_step_size) == (32, 2, 0.01)
+    assert model.guidance == "reference" and model.sketches == ngp_scene["sketches"]
+    assert config.load_dir is None
+
+
+def test_ngp_edit_starts_from_the_base_with_the_edit_box_switched_on(ngp_scene, tmp_path):
+    config = edit_config(ngp_scene["base"], ngp_scene["data"], ngp_scene["sketches"], tmp_path, iterations=1)
+    resolve_edit(config)
+    pipeline = config.pipeline.setup(device="cpu", test_mode="val")
+    model: SkedNGPModel = pipeline.model
+    base = read_model_state(config.pipeline.model.base_checkpoint)
+    for key, value in model.field.state_dict().items():
+        assert torch.equal(value, base[f"field.{key}"]), key
+    base_cells = base["occupancy_grid.binaries"]
+    grid = model.occupancy_grid.binaries
+    assert torch.equal(grid, base_cells | model.edit_box_cells)
+    assert model.edit_box_cells.sum() > 0 and (model.edit_box_cells & ~base_cells).any(), "the hat's cells are new"
+    assert torch.equal(model._base[1].binaries, base_cells), "the frozen grid is the base's"
+    # The edit renders the base too, up to the faint density the base field has in the new cells.
+    view = model.sketch_set.views[0]
+    edit, frozen = render_at(model, view, 32), render_base_at(model, view, 32)
+    difference = (edit["rgb"] - frozen["rgb"]).abs()
+    assert difference.mean() < 2e-3 and difference.max() < 0.1, (difference.mean(), difference.max())
+
+
+def test_no_cell_is_pruned_during_the_warmup(ngp_scene, tmp_path):
+    config = edit_config(ngp_scene["base"], ngp_scene["data"], ngp_scene["sketches"], tmp_path, iterations=100)
+    resolve_edit(config)
+    model: SkedNGPModel = config.pipeline.setup(device="cpu", test_mode="val").model
+    model.train()
+    with torch.no_grad():
+        for parameter in model.field.mlp_base.parameters():
+            parameter.zero_()  # density exp(0) = 1: every cell's occupancy is now below the threshold
+    before = model.occupancy_grid.binaries.clone()
+    for step in range(0, 48, 16):
+        model.update_occupancy_grid(step)
+    assert torch.equal(model.occupancy_grid.binaries, before), "warm-up (50 its): nothing switched off"
+    model.update_occupancy_grid(64)  # after the warm-up instant-ngp's own update applies
+    assert model.occupancy_grid.binaries.sum() < before.sum()
+
+
+def test_ngp_edit_fills_the_sketch_and_keeps_the_rest(ngp_scene, ngp_edited):
+    pipeline = load_pipeline(ngp_edited["run"])
+    model = pipeline.model
+    assert isinstance(model, SkedNGPModel)
+    for view in model.sketch_set.views:
+        edit, base = render_at(model, view, 48), render_base_at(model, view, 48)
+        mask = resized_mask(view, 48)
+        ios_base, ios_edit = intersection_over_sketch(base["accumulation"], mask), intersection_over_sketch(edit["accumulation"], mask)
+        # Measured: 0.17 / 0.28 -> 0.85 / 0.89 with PSNR outside 27-29 dB (see the closing note of issue 3).
+        assert ios_edit > 0.7 and ios_edit > ios_base + 0.3, (ios_base, ios_edit)
+        assert psnr_outside(edit["rgb"], base["rgb"], mask) > 24.0
+
+
+def test_ngp_base_untouched_and_frozen(ngp_scene, ngp_edited):
+    assert _digest(ngp_scene["base"]) == ngp_edited["base_digest_before"]
+    model = ngp_edited["trainer"].pipeline.model
+    base = read_model_state(model.config.base_checkpoint)
+    for key, value in model.base_field.state_dict().items():
+        assert torch.equal(value.cpu(), base[f"field.{key}"]), key
+    assert not any(key.startswith("_base") for key in model.state_dict())
+
+
+def test_ngp_edit_outputs_preservation_weight_and_resumes(ngp_scene, ngp_edited, tmp_path):
+    pipeline = load_pipeline(ngp_edited["run"])
+    view = pipeline.model.sketch_set.views[0]
+    from sked_ns.sked_datamanager import sketch_view_at
+
+    camera = sketch_view_at(view, 24)[0]
+    with torch.no_grad():
+        outputs = pipeline.model.get_outputs_for_camera(camera)
+    weight = outputs["preservation_weight"]
+    assert weight.shape == (24, 24, 1) and torch.isfinite(weight).all()
+    assert weight.min() < 0.5 < weight.max(), "low inside the sketch, 1 elsewhere"
+    # Resume: --load-dir on the edit continues it from its last checkpoint.
+    config = edit_config(ngp_edited["run"], ngp_scene["data"], ngp_scene["sketches"], tmp_path, iterations=ITERATIONS + 2)
+    resolve_edit(config)
+    assert isinstance(config.pipeline.model, SkedNGPModelConfig)
+    assert config.load_dir == ngp_edited["run"] / "nerfstudio_models"
+
+
+def test_rendering_an_ngp_run_without_cuda_is_explained(ngp_scene):
+    if torch.cuda.is_available():
+        pytest.skip("this machine renders instant-ngp runs with nerfacc")
+    with pytest.raises(ValueError, match="instant-ngp runs with nerfacc's CUDA kernels"):
+        load_pipeline(ngp_scene["base"])
+
+
+def test_ns_train_sked_on_an_ngp_run_folder(ngp_scene, tmp_path):
+    """The user's command, typed with the base's run folder, on the CPU."""
+    import shutil
+    import subprocess
+    import sys
+
+    ns_train = shutil.which("ns-train", path=str(Path(sys.executable).parent)) or shutil.which("ns-train")
+    command = [
+        ns_train, "sked", "--load-dir", str(ngp_scene["base"]), "--sketches", str(ngp_scene["sketches"]),
+        "--pipeline.model.guidance", "reference", "--pipeline.model.guidance-resolution", "16",
+        "--pipeline.model.silhouette-resolution", "16", "--max-num-iterations", "3", "--steps-per-save", "2",
+        "--machine.device-type", "cpu", "--mixed-precision", "False", "--vis", "tensorboard",
+        "--output-dir", str(tmp_path), "nerfstudio-data", "--data", str(ngp_scene["data"]),
+    ]
+    result = subprocess.run(command, capture_output=True, text=True, timeout=600)
+    assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
+    (config_path,) = tmp_path.rglob("config.yml")
+    saved = config_path.read_text()
+    assert "SkedNGPModelConfig" in saved and "grid_resolution: 32" in saved
+    assert list((config_path.parent / "nerfstudio_models").glob("step-*.ckpt"))
