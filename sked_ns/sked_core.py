@@ -14,6 +14,8 @@ from __future__ import annotations
 
 import contextlib
 import copy
+import dataclasses
+import math
 import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -72,6 +74,18 @@ class SkedOptions:
     """Iterations during which the empty edit box is kept sampled."""
     compile_lookup: bool = True
     """torch.compile the sketch-distance lookup on CUDA."""
+    samples_per_ray_scale: float = 1.0
+    """Samples per ray relative to the base's (nerfacto: sample counts; instant-ngp: 1 / step size)."""
+    ablation: Literal["none", "no-preserve", "no-silhouette", "text-only"] = "none"
+    """The paper's ablations: drop L_pres, drop L_sil, or both (text only: the sketches only aim the views)."""
+
+    @property
+    def effective_lambda_pres(self) -> float:
+        return 0.0 if self.ablation in ("no-preserve", "text-only") else self.lambda_pres
+
+    @property
+    def effective_lambda_sil(self) -> float:
+        return 0.0 if self.ablation in ("no-silhouette", "text-only") else self.lambda_sil
 
 
 @contextlib.contextmanager
@@ -93,6 +107,12 @@ class SkedMixin:
     """Checkpoint keys the base must provide and the edit starts from."""
 
     # ---- set-up ---------------------------------------------------------------------------
+    def _scaled_config(self):
+        """A private copy of the config, so per-model adjustments never reach the saved config.yml."""
+        if self.config.samples_per_ray_scale <= 0 or not math.isfinite(self.config.samples_per_ray_scale):
+            raise ValueError(f"samples_per_ray_scale = {self.config.samples_per_ray_scale}: must be a positive number.")
+        return dataclasses.replace(self.config)
+
     def _setup_sked(self) -> None:
         """Call after the parent's populate_modules."""
         self.lpips = None
@@ -109,6 +129,35 @@ class SkedMixin:
             self.field.embedding_appearance.requires_grad_(False)
         warn_degenerate_settings(self.config, sketch_set)
         self.guidance: Optional[Guidance] = None  # plain attribute: never in a checkpoint
+        self._add_viewer_controls()
+
+    # ---- steering in the viewer ----------------------------------------------------------------
+    def _add_viewer_controls(self) -> None:
+        """Controls nerfstudio's viewer lists under the model (attributes, found by type)."""
+        from nerfstudio.viewer.viewer_elements import ViewerCheckbox, ViewerSlider
+
+        self.viewer_beta = ViewerSlider(
+            "SKED beta (preservation falloff)", default_value=float(self.config.beta), min_value=1e-3,
+            max_value=1.0, step=1e-3, cb_hook=self._on_beta,
+            hint="Image widths over which preservation fades around the sketches; applies to training too.",
+        )
+        self.viewer_show_base = ViewerCheckbox("SKED show the base (not the edit)", default_value=False)
+        self.viewer_tint = ViewerCheckbox("SKED tint where the edit may act", default_value=False)
+
+    def _on_beta(self, element) -> None:
+        check_beta(float(element.value))
+        self.config.beta = float(element.value)
+
+    def _steer(self, ray_bundle: RayBundle, outputs: Dict[str, Tensor]) -> Dict[str, Tensor]:
+        """Evaluation outputs as the viewer controls ask: base instead of edit, tinted by 1 - w."""
+        if self.viewer_show_base.value:
+            base = self.render_base(ray_bundle)
+            outputs = {**outputs, "rgb": base["rgb"], "accumulation": base["accumulation"], "depth": base["depth"]}
+        if self.viewer_tint.value and "preservation_weight" in outputs:
+            editable = (1.0 - outputs["preservation_weight"]).clamp(0, 1)
+            tint = torch.tensor([1.0, 0.2, 0.2], device=editable.device)
+            outputs = {**outputs, "rgb": outputs["rgb"] * (1 - 0.6 * editable) + 0.6 * editable * tint}
+        return outputs
 
     def _load_base_weights(self) -> None:
         """The editable modules <- the base's weights, after checking they fit."""
@@ -222,7 +271,7 @@ class SkedMixin:
         with torch.no_grad():
             base_outputs = self.base_field(samples)
         density_edit = field_outputs[FieldHeadNames.DENSITY]
-        losses["preservation_loss"] = config.lambda_pres * preservation_loss(
+        losses["preservation_loss"] = config.effective_lambda_pres * preservation_loss(
             density_edit, field_outputs[FieldHeadNames.RGB], base_outputs[FieldHeadNames.DENSITY],
             base_outputs[FieldHeadNames.RGB], weight, config.occupancy_threshold, config.preservation_delta,
             config.lambda_colour,
@@ -245,7 +294,7 @@ class SkedMixin:
             losses.update(self.guidance(rendered, step))
             if sketch is not None:
                 accumulation = sketch["accumulation"].reshape(sketch_masks.shape)
-                losses["silhouette_loss"] = config.lambda_sil * silhouette_loss(accumulation, sketch_masks)
+                losses["silhouette_loss"] = config.effective_lambda_sil * silhouette_loss(accumulation, sketch_masks)
                 metrics["sketch_coverage"] = (accumulation.detach() > 0.5).float().mul(sketch_masks).sum() / sketch_masks.sum().clamp_min(1)
         losses.update(self._sampling_losses([view] + ([sketch] if sketch is not None else [])))
         metrics["mean_preservation_weight"] = weight.mean().detach()

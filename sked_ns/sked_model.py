@@ -54,6 +54,12 @@ class SkedModel(SkedMixin, NerfactoModel):
 
     def populate_modules(self) -> None:
         check_beta(self.config.beta)
+        self.config = self._scaled_config()
+        scale = self.config.samples_per_ray_scale
+        self.config.num_nerf_samples_per_ray = max(4, round(self.config.num_nerf_samples_per_ray * scale))
+        self.config.num_proposal_samples_per_ray = tuple(
+            max(4, round(n * scale)) for n in self.config.num_proposal_samples_per_ray
+        )
         with _without_lpips():
             super().populate_modules()
         self._setup_sked()
@@ -142,6 +148,7 @@ class SkedModel(SkedMixin, NerfactoModel):
             # Background counts as preserved: the viewer shows where the edit may act.
             accumulation = weights.sum(dim=-2)
             outputs["preservation_weight"] = (weights * preservation).sum(dim=-2) + (1 - accumulation).clamp(0, 1)
+            outputs = self._steer(ray_bundle, outputs)
         return outputs
 
 

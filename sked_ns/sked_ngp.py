@@ -51,8 +51,10 @@ class SkedNGPModel(SkedMixin, NGPModel):
     def populate_modules(self) -> None:
         check_beta(self.config.beta)
         self.step = 0
+        self.config = self._scaled_config()
         with without_lpips():
-            super().populate_modules()
+            super().populate_modules()  # fills in render_step_size when the base left it automatic
+        self.config.render_step_size = self.config.render_step_size / self.config.samples_per_ray_scale
         # nerfacc's grid, sampling in torch where its CUDA kernels cannot run.
         self.occupancy_grid = PortableOccGridEstimator(
             roi_aabb=self.scene_aabb, resolution=self.config.grid_resolution, levels=self.config.grid_levels
@@ -137,6 +139,7 @@ class SkedNGPModel(SkedMixin, NGPModel):
             )
             # Background counts as preserved: the viewer shows where the edit may act.
             outputs["preservation_weight"] = preserved + (1 - outputs["accumulation"]).clamp(0, 1)
+            outputs = self._steer(ray_bundle, outputs)
         return outputs
 
 

@@ -60,6 +60,9 @@ CASES = {
     "reference-weight-1e6": {"reference__weight": 1e6},
     "edit-box-density-1e6": {"edit_box_density": 1e6},
     "occupancy-threshold-0": {"occupancy_threshold": 0.0},
+    "samples-per-ray-0.01": {"samples_per_ray_scale": 0.01},
+    "samples-per-ray-4": {"samples_per_ray_scale": 4.0},
+    "ablation-text-only": {"ablation": "text-only"},
 }
 
 
@@ -73,6 +76,23 @@ def test_mixed_precision_autocast_stays_finite(scene, tmp_path, dtype):
     trainer = _trainer(scene, tmp_path)
     # nerfstudio disables mixed precision on a CPU; force the CUDA setting to exercise it here.
     trainer.mixed_precision, trainer.autocast_dtype = True, dtype
+    _run_and_check(trainer)
+
+
+NGP_CASES = {
+    "beta-1e-6-pres-1e6": {"beta": 1e-6, "lambda_pres": 1e6},
+    "beta-1e3-sil-1e6-few-samples": {"beta": 1e3, "lambda_sil": 1e6, "samples_per_ray_scale": 0.1},
+}
+
+
+@pytest.mark.parametrize("settings", list(NGP_CASES.values()), ids=list(NGP_CASES))
+def test_ngp_knob_extremes_stay_finite(ngp_scene, tmp_path, settings):
+    _run_and_check(_trainer(ngp_scene, tmp_path, **settings))
+
+
+def test_ngp_fp16_autocast_stays_finite(ngp_scene, tmp_path):
+    trainer = _trainer(ngp_scene, tmp_path)
+    trainer.mixed_precision, trainer.autocast_dtype = True, torch.float16
     _run_and_check(trainer)
 
 

@@ -1,0 +1,1 @@
+"""SKED presets (installed as the package `sked_ns.configs`); each YAML file is one `ns-train` method."""

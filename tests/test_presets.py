@@ -1,0 +1,110 @@
+"""Presets (configs/*.yml) become ns-train methods, also from a normal (non-editable) install."""
+
+from __future__ import annotations
+
+import shutil
+import subprocess
+import sys
+import zipfile
+from pathlib import Path
+
+import pytest
+import torch
+
+from sked_ns.sked_config import PRESETS, read_preset
+from sked_ns.sked_trainer import resolve_edit
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def test_every_preset_is_a_registered_method_with_its_settings():
+    from nerfstudio.plugins.registry import discover_methods
+
+    methods, _ = discover_methods()
+    for name in PRESETS:
+        preset = read_preset(name)
+        config = methods[name]
+        assert config.max_num_iterations == preset["iterations"]
+        for optimizer in config.optimizers.values():
+            assert optimizer["scheduler"].max_steps == preset["iterations"], "lr decays over the whole edit"
+        for key, value in preset["model"].items():
+            assert getattr(config.pipeline.model, key) == value, (name, key)
+    fast, default, quality = (read_preset(name) for name in ("sked-fast", "sked", "sked-quality"))
+    assert fast["iterations"] < default["iterations"] < quality["iterations"]
+    assert default["iterations"] == 10_000 and default["model"]["guidance_resolution"] == 128  # the paper's
+
+
+def test_a_preset_with_an_unknown_key_names_the_file_and_key(tmp_path):
+    (tmp_path / "broken.yml").write_text("description: x\niterations: 10\nmodel:\n  guidance_resolutoin: 64\n")
+    with pytest.raises(ValueError, match=r"broken\.yml.*model\.guidance_resolutoin"):
+        read_preset("broken", tmp_path)
+    (tmp_path / "empty.yml").write_text("")
+    with pytest.raises(ValueError, match=r"empty\.yml.*iterations"):
+        read_preset("empty", tmp_path)
+
+
+def test_presets_ship_in_the_wheel(tmp_path):
+    """A non-editable install has configs/ as sked_ns.configs and the three entry points."""
+    source = tmp_path / "src"
+    shutil.copytree(ROOT, source, ignore=shutil.ignore_patterns(".venv", ".git", "demo_output", "tests", "*.egg-info", "build"))
+    result = subprocess.run(
+        [sys.executable, "-m", "pip", "wheel", "--no-deps", "--no-build-isolation", "-q", "-w", str(tmp_path / "dist"), str(source)],
+        capture_output=True, text=True, timeout=600,
+    )
+    assert result.returncode == 0, result.stderr[-3000:]
+    (wheel,) = (tmp_path / "dist").glob("sked_ns-*.whl")
+    with zipfile.ZipFile(wheel) as archive:
+        names = archive.namelist()
+        entry_points = next(archive.read(n).decode() for n in names if n.endswith("entry_points.txt"))
+    for name in PRESETS:
+        assert f"sked_ns/configs/{name}.yml" in names
+        assert f"{name} = sked_ns.sked_config:" in entry_points
+    assert "sked_ns/sked_ngp.py" in names and "sked_ns/guidance/stable_diffusion.py" in names
+
+
+def test_samples_per_ray_scale_changes_the_model_not_the_saved_config(scene, tmp_path):
+    from sked_ns.edit_run import edit_config
+
+    config = edit_config(scene["base"], scene["data"], scene["sketches"], tmp_path, iterations=2)
+    config.pipeline.model.samples_per_ray_scale = 0.5
+    resolve_edit(config)
+    base_samples = config.pipeline.model.num_nerf_samples_per_ray
+    model = config.pipeline.setup(device="cpu", test_mode="val").model
+    assert model.config.num_nerf_samples_per_ray == round(base_samples * 0.5)
+    assert config.pipeline.model.num_nerf_samples_per_ray == base_samples, "config.yml keeps the base's count"
+    assert model.proposal_sampler.num_nerf_samples_per_ray == round(base_samples * 0.5)
+
+
+def test_samples_per_ray_scale_shortens_the_ngp_step(ngp_scene, tmp_path):
+    from sked_ns.edit_run import edit_config
+
+    config = edit_config(ngp_scene["base"], ngp_scene["data"], ngp_scene["sketches"], tmp_path, iterations=2)
+    config.pipeline.model.samples_per_ray_scale = 2.0
+    resolve_edit(config)
+    model = config.pipeline.setup(device="cpu", test_mode="val").model
+    assert model.config.render_step_size == pytest.approx(0.005)
+    assert config.pipeline.model.render_step_size == 0.01
+    config.pipeline.model.samples_per_ray_scale = 0.0
+    with pytest.raises(ValueError, match="samples_per_ray_scale"):
+        config.pipeline.setup(device="cpu", test_mode="val")
+
+
+@pytest.mark.parametrize("ablation, dropped", [
+    ("no-preserve", {"preservation_loss"}), ("no-silhouette", {"silhouette_loss"}),
+    ("text-only", {"preservation_loss", "silhouette_loss"}),
+])
+def test_ablation_switches_drop_their_losses(scene, tmp_path, ablation, dropped):
+    from sked_ns.edit_run import edit_config
+
+    config = edit_config(scene["base"], scene["data"], scene["sketches"], tmp_path, iterations=2)
+    config.pipeline.model.ablation = ablation
+    resolve_edit(config)
+    pipeline = config.pipeline.setup(device="cpu", test_mode="val")
+    pipeline.train()
+    _, losses, _ = pipeline.get_train_loss_dict(step=0)
+    for name in ("preservation_loss", "silhouette_loss"):
+        if name in dropped:
+            assert losses[name] == 0
+        else:
+            assert losses[name] > 0
+    assert torch.isfinite(sum(losses.values()))
