@@ -41,3 +41,11 @@ def psnr_outside(edited: Tensor, base: Tensor, mask: Tensor) -> float:
         raise ValueError("The sketch covers the whole image: nothing outside it to compare.")
     mse = ((edited.float() - base.float()) ** 2)[keep].mean().item()
     return float("inf") if mse == 0 else float(-10.0 * np.log10(mse))
+
+
+def psnr_inside(edited: Tensor, target: Tensor, mask: Tensor) -> float:
+    """PSNR over the sketched pixels only: the edit against a known target (benchmark scenes)."""
+    mask = mask.bool().reshape(edited.shape[:2])
+    if not mask.any():
+        raise ValueError("The sketch is empty: no pixel inside it to compare.")
+    return psnr_outside(edited, target, ~mask)

@@ -51,3 +51,18 @@ def test_ssim_outside_known_answers():
     assert ssim_outside(base, base, mask) == pytest.approx(1.0, abs=1e-6)
     noisy = (base + 0.3 * torch.randn_like(base)).clamp(0, 1)
     assert ssim_outside(noisy, base, mask) < 0.9
+
+
+def test_psnr_inside_looks_only_at_the_sketch():
+    from sked_ns.metrics import psnr_inside
+
+    mask = torch.zeros(8, 8, dtype=torch.bool)
+    mask[2:4, 2:6] = True
+    target = torch.full((8, 8, 3), 0.5)
+    edited = target.clone()
+    edited[~mask] = 0.0  # wrong everywhere outside: ignored
+    assert psnr_inside(edited, target, mask) == math.inf
+    edited[mask] = 0.6  # MSE 0.01 inside -> 20 dB
+    assert psnr_inside(edited, target, mask) == pytest.approx(20.0, rel=1e-5)
+    with pytest.raises(ValueError, match="empty"):
+        psnr_inside(edited, target, torch.zeros(8, 8, dtype=torch.bool))

@@ -1,0 +1,230 @@
+"""Where an SDS iteration's time goes: render, VAE encode, UNet, losses, backward; and peak memory.
+
+    python benchmarks/sds_iteration.py                     # full-size SD v1.x architecture (needs a GPU)
+    python benchmarks/sds_iteration.py --size tiny --iterations 3   # a smoke run anywhere
+
+Runs a real `ns-train sked` edit with Stable Diffusion guidance at the default settings (random
+view at 128 px, sketch views at 128 px) on the demo scene's tiny nerfacto base. The diffusion
+model has SD v1.x's full architecture (UNet 860M, VAE, CLIP ViT-L text encoder) with RANDOM
+weights, built here and saved like a real checkpoint: honest timings, meaningless images.
+On CUDA the UNet and VAE encoder are compiled (the default) and fp16.
+
+Reports the first iteration (compilation included), then the mean of the rest split by stage
+(each stage timed between CUDA synchronisations, which costs a little), the unsynchronised
+iteration time, the bare compiled SD cost (VAE encode + UNet on a fixed input, measured in the
+same process) and their ratio, and peak memory. Writes benchmarks/results/sds_iteration.json.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import resource
+import tempfile
+import time
+from contextlib import contextmanager
+from pathlib import Path
+
+import numpy as np
+import torch
+
+RESULTS = Path(__file__).parent / "results"
+
+
+def build_random_stable_diffusion(folder: Path, size: str) -> Path:
+    """SD v1.x's architecture (or a tiny one) with random weights, in diffusers' folder layout."""
+    from diffusers import AutoencoderKL, DDPMScheduler, UNet2DConditionModel
+    from transformers import CLIPTextConfig, CLIPTextModel, CLIPTokenizer
+
+    torch.manual_seed(0)
+    full = size == "full"
+    # A byte-level vocabulary: the prompt's tokens do not matter for timing.
+    printable = [chr(c) for c in range(33, 127)]
+    vocab = {t: i for i, t in enumerate(printable + [c + "</w>" for c in printable])}
+    vocab["<|startoftext|>"], vocab["<|endoftext|>"] = len(vocab), len(vocab) + 1
+    (folder / "tokenizer").mkdir(parents=True, exist_ok=True)
+    (folder / "tokenizer" / "vocab.json").write_text(json.dumps(vocab))
+    (folder / "tokenizer" / "merges.txt").write_text("#version: 0.2\n")
+    CLIPTokenizer(str(folder / "tokenizer" / "vocab.json"), str(folder / "tokenizer" / "merges.txt"),
+                  model_max_length=77).save_pretrained(str(folder / "tokenizer"))
+    hidden = 768 if full else 32
+    CLIPTextModel(CLIPTextConfig(
+        vocab_size=49408 if full else len(vocab), hidden_size=hidden, intermediate_size=3072 if full else 37,
+        num_attention_heads=12 if full else 4, num_hidden_layers=12 if full else 2, max_position_embeddings=77,
+        bos_token_id=vocab["<|startoftext|>"], eos_token_id=vocab["<|endoftext|>"], pad_token_id=vocab["<|endoftext|>"],
+    )).save_pretrained(str(folder / "text_encoder"))
+    if full:
+        unet = UNet2DConditionModel(
+            sample_size=64, in_channels=4, out_channels=4, layers_per_block=2, block_out_channels=(320, 640, 1280, 1280),
+            down_block_types=("CrossAttnDownBlock2D",) * 3 + ("DownBlock2D",),
+            up_block_types=("UpBlock2D",) + ("CrossAttnUpBlock2D",) * 3, cross_attention_dim=768, attention_head_dim=8,
+        )
+        vae = AutoencoderKL(
+            in_channels=3, out_channels=3, down_block_types=("DownEncoderBlock2D",) * 4,
+            up_block_types=("UpDecoderBlock2D",) * 4, block_out_channels=(128, 256, 512, 512), layers_per_block=2,
+            latent_channels=4, sample_size=512,
+        )
+    else:
+        unet = UNet2DConditionModel(
+            sample_size=8, in_channels=4, out_channels=4, layers_per_block=1, block_out_channels=(32, 64),
+            down_block_types=("CrossAttnDownBlock2D", "DownBlock2D"), up_block_types=("UpBlock2D", "CrossAttnUpBlock2D"),
+            cross_attention_dim=hidden, attention_head_dim=8, norm_num_groups=32,
+        )
+        vae = AutoencoderKL(
+            in_channels=3, out_channels=3, down_block_types=("DownEncoderBlock2D",) * 2,
+            up_block_types=("UpDecoderBlock2D",) * 2, block_out_channels=(32, 64), latent_channels=4, norm_num_groups=32,
+        )
+    unet.save_pretrained(str(folder / "unet"))
+    vae.save_pretrained(str(folder / "vae"))
+    DDPMScheduler(num_train_timesteps=1000, beta_start=0.00085, beta_end=0.012,
+                  beta_schedule="scaled_linear").save_pretrained(str(folder / "scheduler"))
+    return folder
+
+
+class StageTimer:
+    """Wall time per stage, between device synchronisations."""
+
+    def __init__(self, device: str) -> None:
+        self.device, self.totals, self.enabled = device, {}, True
+
+    def sync(self) -> None:
+        if self.device == "cuda":
+            torch.cuda.synchronize()
+
+    @contextmanager
+    def stage(self, name: str):
+        if not self.enabled:
+            yield
+            return
+        self.sync()
+        start = time.perf_counter()
+        try:
+            yield
+        finally:
+            self.sync()
+            self.totals[name] = self.totals.get(name, 0.0) + time.perf_counter() - start
+
+    def wrap(self, owner, attribute: str, name: str) -> None:
+        original = getattr(owner, attribute)
+
+        def timed(*args, **kwargs):
+            with self.stage(name):
+                return original(*args, **kwargs)
+
+        setattr(owner, attribute, timed)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--size", choices=("full", "tiny"), default="full")
+    parser.add_argument("--iterations", type=int, default=30)
+    parser.add_argument("--resolution", type=int, default=128, help="random-view and sketch-view render size")
+    parser.add_argument("--image-size", type=int, default=512, help="SD input size (SD's native 512)")
+    parser.add_argument("--output", type=Path, default=RESULTS / "sds_iteration.json")
+    parser.add_argument("--workdir", type=Path, default=None)
+    args = parser.parse_args()
+
+    from sked_ns import demo_scene
+    from sked_ns.demo_base import build_demo_base
+    from sked_ns.edit_run import edit_config
+    from sked_ns.sketches import save_sketch_set
+
+    device = "cuda" if torch.cuda.is_available() else "cpu"
+    with tempfile.TemporaryDirectory() as scratch:
+        work = args.workdir or Path(scratch)
+        demo_scene.write_demo_dataset(work / "data")
+        base = build_demo_base(work / "data", work / "base", steps=300)
+        save_sketch_set(demo_scene.demo_sketch_set(), work / "sketches", overwrite=True)
+        sd = build_random_stable_diffusion(work / f"sd-{args.size}", args.size)
+
+        config = edit_config(base, work / "data", work / "sketches", work / "edits", prompt="a red chef hat",
+                             guidance="stable-diffusion", iterations=args.iterations + 1,
+                             guidance_resolution=args.resolution, silhouette_resolution=args.resolution,
+                             device=device, steps_per_save=10**9)
+        config.pipeline.model.sds.model = str(sd)
+        config.pipeline.model.sds.image_size = args.image_size
+        config.set_timestamp()
+        trainer = config.setup(local_rank=0, world_size=1)
+        trainer.setup()
+        trainer.pipeline.prepare_guidance()
+        model, guidance = trainer.pipeline.model, trainer.pipeline.model.guidance
+
+        timer = StageTimer(device)
+        timer.wrap(model, "_render", "render")
+        timer.wrap(guidance, "_encode", "vae_encode")
+        timer.wrap(guidance, "_unet_forward", "unet")
+        original_step = trainer.train_iteration
+
+        if device == "cuda":
+            torch.cuda.reset_peak_memory_stats()
+        first_start = time.perf_counter()
+        original_step(0)
+        timer.sync()
+        first = time.perf_counter() - first_start
+
+        # Split, with synchronisations.
+        timer.totals.clear()
+        iteration_totals = []
+        for step in range(1, args.iterations + 1):
+            timer.sync()
+            start = time.perf_counter()
+            original_step(step)
+            timer.sync()
+            iteration_totals.append(time.perf_counter() - start)
+        split = {name: 1000 * value / args.iterations for name, value in timer.totals.items()}
+        split["losses_and_backward_and_step"] = 1000 * float(np.mean(iteration_totals)) - sum(split.values())
+
+        # Without synchronisations: the real iteration time.
+        timer.enabled = False
+        start = time.perf_counter()
+        for step in range(args.iterations + 1, 2 * args.iterations + 1):
+            original_step(step)
+        timer.sync()
+        iteration_ms = 1000 * (time.perf_counter() - start) / args.iterations
+
+        # The bare (compiled) SD cost on a fixed input, same process: VAE encode forward+backward + UNet batch 2.
+        image = torch.rand(1, 3, args.resolution, args.resolution, device=device, requires_grad=True)
+        bare = []
+        for repeat in range(args.iterations + 1):
+            timer.sync()
+            start = time.perf_counter()
+            latents = guidance.encode(image)
+            t = torch.full((2,), 500, device=device)
+            with torch.no_grad():
+                context = torch.stack([guidance.embeddings[""], guidance.embeddings["front"]])
+                guidance._unet_forward(torch.cat([latents.detach().to(guidance.dtype)] * 2), t, encoder_hidden_states=context)
+            latents.sum().backward()
+            timer.sync()
+            if repeat:
+                bare.append(time.perf_counter() - start)
+        bare_ms = 1000 * float(np.mean(bare))
+        peak = (torch.cuda.max_memory_allocated() / 2**30 if device == "cuda"
+                else resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20)
+
+    machine = torch.cuda.get_device_name() if device == "cuda" else f"{platform.machine()} CPU, {torch.get_num_threads()} threads"
+    result = {
+        "machine": machine, "device": device, "diffusion_model": f"SD v1.x architecture ({args.size}), random weights",
+        "precision": "fp16, compiled UNet and VAE encoder" if device == "cuda" else "fp32, eager",
+        "resolution": args.resolution, "iterations": args.iterations,
+        "first_iteration_s (compilation included)": first,
+        "split_ms (synchronised)": split,
+        "iteration_ms": iteration_ms,
+        "bare_sd_ms (VAE encode fwd+bwd + UNet batch 2)": bare_ms,
+        "iteration_over_bare_sd": iteration_ms / bare_ms,
+        "peak_memory_gb": peak,
+        "projected_10k_iterations_min": (first + 10_000 * iteration_ms / 1000) / 60,
+    }
+    args.output.parent.mkdir(parents=True, exist_ok=True)
+    args.output.write_text(json.dumps(result, indent=2))
+    print(f"{machine}; {result['diffusion_model']}; {result['precision']}")
+    print("| stage | ms |\n|---|---|")
+    for name, value in split.items():
+        print(f"| {name} | {value:.1f} |")
+    print(f"iteration {iteration_ms:.1f} ms, bare SD {bare_ms:.1f} ms (x{iteration_ms / bare_ms:.2f}), first "
+          f"{first:.1f} s, peak {peak:.2f} GB, 10k iterations ~{result['projected_10k_iterations_min']:.1f} min")
+    print(f"wrote {args.output}")
+
+
+if __name__ == "__main__":
+    main()

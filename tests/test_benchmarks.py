@@ -1,0 +1,55 @@
+"""The benchmark scripts run end to end (smoke size) and their bookkeeping is right."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
+sys.path.insert(0, str(BENCHMARKS))
+
+import speed_accuracy  # noqa: E402
+
+
+def test_pareto_front_keeps_only_undominated_points():
+    points = [(10.0, 20.0), (5.0, 18.0), (20.0, 19.0), (5.0, 18.0), (1.0, 10.0), (30.0, 25.0)]
+    # (20, 19) is beaten by (10, 20); ties are on the front together.
+    assert speed_accuracy.pareto(points) == [True, True, False, True, True, True]
+
+
+def test_plan_scales_presets_and_covers_every_knob():
+    runs = speed_accuracy.plan("cpu", quick=False)
+    presets = {r["name"]: r for r in runs if r["group"] == "preset" and r["scene"] == "hat"}
+    assert presets["sked"]["iterations"] == 100 and presets["sked"]["guidance_resolution"] == 32
+    assert presets["sked-fast"]["iterations"] < presets["sked"]["iterations"] < presets["sked-quality"]["iterations"]
+    assert {r["ablation"] for r in runs if r["group"] == "ablation"} == {"no-preserve", "no-silhouette", "text-only"}
+    swept = {r["name"].split("=")[0] for r in runs if r["group"] == "sweep"}
+    assert swept == {"guidance_resolution", "samples_per_ray_scale", "iterations", "mixed_precision", "log2_hashmap_size"}
+    assert {r["scene"] for r in runs if r["group"] != "sweep"} == {"hat", "handle", "antenna"}
+
+
+def test_speed_accuracy_quick_run_writes_json_and_plot(tmp_path):
+    output = tmp_path / "speed_accuracy.json"
+    result = subprocess.run([sys.executable, str(BENCHMARKS / "speed_accuracy.py"), "--quick", "--output", str(output)],
+                            capture_output=True, text=True, timeout=900)
+    assert result.returncode == 0, result.stderr[-3000:]
+    data = json.loads(output.read_text())
+    (row,) = data["summary"]
+    for key in ("seconds_total", "ms_per_iteration", "peak_memory_mb", "ios", "psnr_outside", "psnr_target_inside"):
+        assert row[key] > 0, key
+    assert "CPU protocol" in data["protocol"] and output.with_suffix(".png").stat().st_size > 10_000
+    assert "| sked-fast | preset |" in result.stdout
+
+
+def test_sds_iteration_smoke_run_with_a_tiny_model(tmp_path):
+    output = tmp_path / "sds.json"
+    result = subprocess.run([sys.executable, str(BENCHMARKS / "sds_iteration.py"), "--size", "tiny", "--iterations", "2",
+                             "--resolution", "16", "--image-size", "32", "--output", str(output)], capture_output=True, text=True, timeout=900)
+    assert result.returncode == 0, result.stderr[-3000:]
+    data = json.loads(output.read_text())
+    split = data["split_ms (synchronised)"]
+    assert {"render", "vae_encode", "unet", "losses_and_backward_and_step"} <= set(split)
+    assert all(value > 0 for value in split.values()) and data["iteration_ms"] > 0
+    assert "random weights" in data["diffusion_model"]
