@@ -1,8 +1,9 @@
 """`sked-eval`: the paper's protocol on an edited run's sketch views.
 
 Renders every sketch view with the base and the edit and reports PSNR and SSIM outside the
-sketches, Intersection-over-Sketch, and LPIPS / CLIP similarity only when their weights are
-available locally (reported as unavailable otherwise, never faked). Writes JSON and a
+sketches, Intersection-over-Sketch, LPIPS outside the sketches and CLIP similarity to the
+prompt over 40 views around the edit, the last two only when their weights are available
+locally (reported as unavailable otherwise, never faked). Writes JSON and a
 contact sheet (base | edit | mask overlay, one row per sketch view).
 """
 
@@ -18,7 +19,10 @@ import torch
 
 from sked_ns.base_scene import resolve_base
 from sked_ns.metrics import intersection_over_sketch, psnr_outside, ssim_outside
-from sked_ns.render import load_pipeline, render_at, render_base_at, resized_mask
+from sked_ns.clip_score import DEFAULT_CLIP, ClipScorer, orbit_cameras
+from sked_ns.random_views import focal_from_fov
+from sked_ns.render import load_pipeline, render_at, render_base_at, render_camera, resized_mask
+from sked_ns.sked_datamanager import cameras_of
 from sked_ns.sketches import load_sketch_set
 
 
@@ -38,8 +42,31 @@ def _lpips_or_reason():
         return None, f"unavailable: LPIPS could not be built ({type(error).__name__}: {error})"
 
 
+def clip_similarities(model, sketch_set, prompt: Optional[str], clip_model: str, views: int, resolution: int,
+                      own_base: bool) -> Dict:
+    """Mean CLIP similarity of the edit (and of its base) to the prompt over `views` orbit views."""
+    if not (prompt and prompt.strip()):
+        return {"clip_similarity": "unavailable: the edit has no text prompt (reference guidance or carving); "
+                                   "pass --prompt to score it against one"}
+    scorer, reason = ClipScorer.load(clip_model)
+    if scorer is None:
+        return {"clip_similarity": reason}
+    centre = model.edit_box.center
+    radius = float(np.mean([np.linalg.norm(view.camera_to_world[:, 3] - centre) for view in sketch_set.views]))
+    cameras = [cameras_of(torch.tensor(pose[None], dtype=torch.float32), *(2 * [focal_from_fov(50.0, resolution)]),
+                          resolution / 2, resolution / 2, resolution, resolution)
+               for pose in orbit_cameras(centre, radius, views)]
+    result = {"clip_similarity": float(np.mean(scorer.similarity([render_camera(model, c)["rgb"] for c in cameras], prompt))),
+              "clip_views": views, "clip_model": clip_model, "clip_prompt": prompt}
+    if own_base:
+        base = [render_camera(model, c, base=True)["rgb"] for c in cameras]
+        result["clip_similarity_base"] = float(np.mean(scorer.similarity(base, prompt)))
+    return result
+
+
 def evaluate(edit_run: Path, base_run: Optional[Path] = None, sketches: Optional[Path] = None,
-             resolution: int = 256, device: str = "cpu") -> Dict:
+             resolution: int = 256, device: str = "cpu", clip_model: str = DEFAULT_CLIP,
+             prompt: Optional[str] = None, clip_views: int = 40, clip_resolution: int = 128) -> Dict:
     """Metrics of every sketch view, their means, and the renders for the contact sheet."""
     edit = resolve_base(edit_run)
     if edit.family != "sked":
@@ -86,8 +113,9 @@ def evaluate(edit_run: Path, base_run: Optional[Path] = None, sketches: Optional
         "views": views,
         "mean": {key: float(np.mean([view[key] for view in views])) for key in keys},
         "lpips_outside": "computed per view" if lpips is not None else lpips_reason,
-        "clip_similarity": "unavailable: CLIP similarity over 40 views is not implemented in this version",
     }
+    result.update(clip_similarities(edit_pipeline.model, sketch_set, prompt or model_config.prompt, clip_model,
+                                    clip_views, clip_resolution, own_base))
     return {"metrics": result, "sheet": torch.cat(rows, dim=0)}
 
 
@@ -103,9 +131,14 @@ def entrypoint() -> None:
     parser.add_argument("--sheet", type=Path, default=None, help="contact sheet PNG (default: next to --output)")
     parser.add_argument("--resolution", type=int, default=256)
     parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
+    parser.add_argument("--prompt", default=None, help="prompt for CLIP similarity (default: the edit's)")
+    parser.add_argument("--clip-model", default=DEFAULT_CLIP, help="CLIP hub id (cached) or local folder")
+    parser.add_argument("--clip-views", type=int, default=40, help="views around the edit for CLIP similarity")
+    parser.add_argument("--clip-resolution", type=int, default=128, help="render size of those views")
     args = parser.parse_args()
     run = args.config.parent if args.config.name == "config.yml" else args.config
-    outcome = evaluate(run, args.base, args.sketches, args.resolution, args.device)
+    outcome = evaluate(run, args.base, args.sketches, args.resolution, args.device, args.clip_model, args.prompt,
+                       args.clip_views, args.clip_resolution)
     args.output.parent.mkdir(parents=True, exist_ok=True)
     args.output.write_text(json.dumps(outcome["metrics"], indent=2))
     sheet = args.sheet or args.output.with_suffix(".png")
@@ -114,7 +147,8 @@ def entrypoint() -> None:
     cv2.imwrite(str(sheet), (outcome["sheet"].numpy().clip(0, 1) * 255).round().astype(np.uint8)[..., ::-1])
     mean = outcome["metrics"]["mean"]
     print(f"PSNR outside {mean['psnr_outside']:.2f} dB, SSIM outside {mean['ssim_outside']:.3f}, "
-          f"IoS {mean['ios']:.3f} (base {mean['ios_base']:.3f}); LPIPS: {outcome['metrics']['lpips_outside']}\n"
+          f"IoS {mean['ios']:.3f} (base {mean['ios_base']:.3f}); LPIPS: {outcome['metrics']['lpips_outside']}; "
+          f"CLIP similarity: {outcome['metrics']['clip_similarity']}\n"
           f"wrote {args.output} and {sheet}")
 
 

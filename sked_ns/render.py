@@ -11,32 +11,33 @@ from sked_ns.sked_datamanager import sketch_view_at
 from sked_ns.sketches import SketchView
 
 
-def render_at(model, view: SketchView, resolution: int) -> Dict[str, torch.Tensor]:
-    """rgb (h, w, 3) and accumulation (h, w) of `model` at `view` (model frame), longer side `resolution`."""
-    camera = sketch_view_at(view, resolution)[0].to(model.device)
+def render_camera(model, camera, base: bool = False) -> Dict[str, torch.Tensor]:
+    """rgb (h, w, 3) and accumulation (h, w) of one nerfstudio camera; `base`: a SKED model's frozen base."""
+    camera = camera.to(model.device)
     was_training = model.training
     model.eval()
     with torch.no_grad():
-        outputs = model.get_outputs_for_camera(camera)
+        if not base:
+            outputs = model.get_outputs_for_camera(camera)
+        else:
+            rays = camera.generate_rays(camera_indices=0, keep_shape=True)
+            shape = rays.shape
+            rays = rays.flatten()
+            chunk = model.config.eval_num_rays_per_chunk
+            parts = [model.render_base(model._collide(rays[i : i + chunk])) for i in range(0, len(rays), chunk)]
+            outputs = {key: torch.cat([part[key] for part in parts]).reshape(*shape, -1) for key in ("rgb", "accumulation")}
     model.train(was_training)
     return {"rgb": outputs["rgb"].cpu(), "accumulation": outputs["accumulation"][..., 0].cpu()}
 
 
+def render_at(model, view: SketchView, resolution: int) -> Dict[str, torch.Tensor]:
+    """`model` at a sketch view (model frame), longer side `resolution`."""
+    return render_camera(model, sketch_view_at(view, resolution)[0])
+
+
 def render_base_at(model, view: SketchView, resolution: int) -> Dict[str, torch.Tensor]:
     """Like `render_at`, with a SKED model's frozen copy of its base (exactly the base's weights)."""
-    camera = sketch_view_at(view, resolution)[0].to(model.device)
-    rays = camera.generate_rays(camera_indices=0, keep_shape=True)
-    height, width = rays.shape
-    rays = rays.flatten()
-    chunk = model.config.eval_num_rays_per_chunk
-    was_training = model.training
-    model.eval()
-    with torch.no_grad():
-        parts = [model.render_base(model._collide(rays[i : i + chunk])) for i in range(0, len(rays), chunk)]
-    model.train(was_training)
-    rgb = torch.cat([part["rgb"] for part in parts]).reshape(height, width, 3)
-    accumulation = torch.cat([part["accumulation"] for part in parts]).reshape(height, width)
-    return {"rgb": rgb.cpu(), "accumulation": accumulation.cpu()}
+    return render_camera(model, sketch_view_at(view, resolution)[0], base=True)
 
 
 def resized_mask(view: SketchView, resolution: int) -> torch.Tensor:
