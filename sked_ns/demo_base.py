@@ -73,9 +73,9 @@ def nerfacto_config(data: Path, output_dir: Path, tiny: TinyNerfacto = TinyNerfa
     return config
 
 
-def ngp_config(data: Path, output_dir: Path, tiny: TinyNerfacto = TinyNerfacto()):
-    """`ns-train instant-ngp` config for the demo data: a coarse grid and long steps for the CPU."""
-    config = copy.deepcopy(method_configs["instant-ngp"])
+def ngp_config(data: Path, output_dir: Path, tiny: TinyNerfacto = TinyNerfacto(), method: str = "instant-ngp"):
+    """`ns-train instant-ngp(-bounded)` config for the demo data: a coarse grid and long steps for the CPU."""
+    config = copy.deepcopy(method_configs[method])
     config.output_dir = output_dir
     config.experiment_name = "demo-base-ngp"
     config.timestamp = "base"
@@ -89,7 +89,7 @@ def ngp_config(data: Path, output_dir: Path, tiny: TinyNerfacto = TinyNerfacto()
     model.log2_hashmap_size = tiny.log2_hashmap_size
     model.max_res = tiny.max_res
     model.grid_resolution = 32
-    model.grid_levels = 2
+    model.grid_levels = 1 if method == "instant-ngp-bounded" else 2
     model.render_step_size = 0.01
     model.cone_angle = 0.0  # a bounded object, as instant-ngp-bounded
     return config
@@ -105,8 +105,10 @@ def build_demo_base(
 ) -> Path:
     """Fit a tiny nerfacto or instant-ngp to the analytic scene; returns the run folder (with config.yml)."""
     torch.manual_seed(seed)
-    make_config = {"nerfacto": nerfacto_config, "instant-ngp": ngp_config}[method]
-    config = make_config(Path(data), Path(output_dir), tiny)
+    if method == "nerfacto":
+        config = nerfacto_config(Path(data), Path(output_dir), tiny)
+    else:
+        config = ngp_config(Path(data), Path(output_dir), tiny, method)
     with _without_lpips():
         pipeline = config.pipeline.setup(device="cpu", test_mode="val")
     outputs = pipeline.datamanager.train_dataparser_outputs
@@ -116,7 +118,7 @@ def build_demo_base(
     model = pipeline.model
     proposals = list(getattr(model, "proposal_networks", []))
     parameters = list(model.field.parameters()) + [p for network in proposals for p in network.parameters()]
-    if method == "instant-ngp":
+    if method != "nerfacto":
         model.field.eval()  # fit the appearance NGP renders with (no per-image embedding)
     optimizer = torch.optim.Adam(parameters, lr=1e-2)
     radius = demo_scene.SPHERE_RADIUS * transform.scale * 1.6
@@ -147,7 +149,7 @@ def build_demo_base(
         loss.backward()
         optimizer.step()
 
-    if method == "instant-ngp":
+    if method != "nerfacto":
         with torch.no_grad():
             # Every cell, as in instant-ngp's warm-up: occupancy = max over random points of density x step.
             for _ in range(16):

@@ -87,6 +87,20 @@ class SkedTrainer(Trainer):
         # fp16 on CUDA; tests set it on the CPU (where nerfstudio turns mixed precision off) to prove fp16 safety.
         self.autocast_dtype = torch.float16 if self.device.startswith("cuda") else torch.bfloat16
         super().setup(test_mode=test_mode)
+        if getattr(self, "viewer_state", None) is not None:
+            self._show_sketches_in_viewer()
+
+    def _show_sketches_in_viewer(self) -> None:
+        """The sketch views (frusta showing their masks) and the edit box, beside the training cameras."""
+        from sked_ns.sketch_viewer import show_sketch_views
+
+        model = self.pipeline.model
+        server = self.viewer_state.viser_server
+        show_sketch_views(server, model.sketch_set.views, model.edit_box)
+        lines = [f"- view {i}: {v.width}x{v.height}, mask {v.mask.mean():.0%} of the image"
+                 for i, v in enumerate(model.sketch_set.views)]
+        with server.gui.add_folder("SKED sketches"):
+            server.gui.add_markdown("\n".join(lines))
 
     def _load_checkpoint(self) -> None:
         if self.config.load_dir is None and self.config.load_checkpoint is None:

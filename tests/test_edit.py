@@ -284,8 +284,23 @@ def test_sked_eval_reports_the_paper_metrics(scene, edited, tmp_path):
         assert key in metrics["mean"] and all(key in view for view in metrics["views"])
     assert metrics["mean"]["ios"] > 0.7 and metrics["mean"]["psnr_outside"] > 25 and metrics["mean"]["ssim_outside"] > 0.8
     assert metrics["lpips_outside"].startswith("unavailable") or "lpips_outside" in metrics["views"][0]
-    assert metrics["clip_similarity"].startswith("unavailable")
+    assert metrics["clip_similarity"].startswith("unavailable: the edit has no text prompt")
     assert (tmp_path / "eval.png").exists()
+
+
+def test_sked_eval_clip_similarity_with_local_weights(scene, edited, tmp_path):
+    from tiny_clip import build_tiny_clip
+
+    from sked_ns.evaluate import evaluate
+
+    clip = build_tiny_clip(tmp_path / "clip")
+    outcome = evaluate(edited["run"], resolution=32, clip_model=str(clip), prompt="a sphere wearing a hat",
+                       clip_views=6, clip_resolution=32)["metrics"]
+    assert -1 <= outcome["clip_similarity"] <= 1 and -1 <= outcome["clip_similarity_base"] <= 1
+    assert outcome["clip_similarity"] != outcome["clip_similarity_base"], "the edit's views differ from the base's"
+    assert outcome["clip_views"] == 6 and outcome["clip_prompt"] == "a sphere wearing a hat"
+    missing = evaluate(edited["run"], resolution=32, clip_model=str(tmp_path / "absent"), prompt="a hat")["metrics"]
+    assert missing["clip_similarity"].startswith("unavailable: no CLIP weights")
 
 
 def test_eval_images_need_no_lpips(scene, edited):
@@ -303,6 +318,8 @@ def test_eval_images_need_no_lpips(scene, edited):
                         "--save-world-frame", "False"], "point_cloud.ply"),
         ("tsdf", ["--resolution", "32", "--batch-size", "2", "--downscale-factor", "2", "--texture-method", "tsdf"],
          "tsdf_mesh.ply"),
+        ("poisson", ["--num-points", "4000", "--remove-outliers", "False", "--normal-method", "open3d",
+                     "--texture-method", "point_cloud"], "poisson_mesh.ply"),
     ],
 )
 def test_ns_export_works_on_an_edited_scene(edited, tmp_path, exporter, arguments, produced):
@@ -317,3 +334,25 @@ def test_ns_export_works_on_an_edited_scene(edited, tmp_path, exporter, argument
     )
     assert result.returncode == 0, result.stderr[-3000:]
     assert (tmp_path / produced).stat().st_size > 1000
+
+
+def test_ns_render_makes_a_video_of_an_edited_scene(edited, tmp_path):
+    import shutil as _shutil
+    import subprocess
+    import sys
+
+    if _shutil.which("ffmpeg") is None:
+        pytest.skip("ffmpeg is not installed (Debian: apt-get install ffmpeg; `bash .ci/test` does it as root)")
+    ns_render = _shutil.which("ns-render", path=str(Path(sys.executable).parent)) or _shutil.which("ns-render")
+    video = tmp_path / "edit.mp4"
+    result = subprocess.run(
+        [ns_render, "interpolate", "--load-config", str(edited["run"] / "config.yml"), "--output-path", str(video),
+         "--pose-source", "train", "--interpolation-steps", "1", "--downscale-factor", "2", "--frame-rate", "8",
+         "--rendered-output-names", "rgb", "preservation_weight"], capture_output=True, text=True, timeout=600,
+    )
+    assert result.returncode == 0, result.stdout[-2000:] + result.stderr[-2000:]
+    import mediapy
+
+    frames = mediapy.read_video(str(video))
+    assert len(frames) >= 20 and frames.shape[2] == 2 * frames.shape[1], "rgb and preservation weight side by side"
+    assert frames.std() > 5, "not a blank video"

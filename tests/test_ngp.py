@@ -144,3 +144,22 @@ def test_ns_train_sked_on_an_ngp_run_folder(ngp_scene, tmp_path):
     saved = config_path.read_text()
     assert "SkedNGPModelConfig" in saved and "grid_resolution: 32" in saved
     assert list((config_path.parent / "nerfstudio_models").glob("step-*.ckpt"))
+
+
+def test_instant_ngp_bounded_base_edits(ngp_scene, tmp_path):
+    """instant-ngp-bounded: no scene contraction, one grid level, black background, alpha_thre 0."""
+    from sked_ns.demo_base import build_demo_base
+
+    base = build_demo_base(ngp_scene["data"], tmp_path / "base", steps=300, points_per_step=4096,
+                           method="instant-ngp-bounded")
+    config = edit_config(base, ngp_scene["data"], ngp_scene["sketches"], tmp_path / "edits", iterations=20,
+                         guidance_resolution=16, silhouette_resolution=16)
+    trainer = run_edit(config)
+    model = trainer.pipeline.model
+    assert isinstance(model, SkedNGPModel)
+    assert model.config.disable_scene_contraction and model.config.grid_levels == 1 and model.config.alpha_thre == 0
+    assert model.field.spatial_distortion is None
+    assert trainer.skipped_steps == 0
+    assert all(torch.isfinite(p).all() for p in model.parameters())
+    view = model.sketch_set.views[0]
+    assert render_at(model, view, 24)["accumulation"].max() > 0.5, "the bounded base renders its object"

@@ -1,0 +1,286 @@
+"""`sked-sketch`: draw a sketch set over a trained base in the nerfstudio viewer, or headless.
+
+    sked-sketch outputs/scene/nerfacto/RUN/config.yml --out my-sketches/      # viewer + SKED panel
+    sked-sketch canvases outputs/.../config.yml canvases/ --images 0 7        # renders to paint on
+    sked-sketch import canvases/ --out my-sketches/                           # painted canvases -> set
+
+The viewer is nerfstudio's own (ViewerState); the SKED panel is a folder of viser controls
+driving a `SketchSession`. The base run is only read (the viewer's log goes to a temp folder).
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+from typing import List, Optional
+
+import numpy as np
+import torch
+
+from sked_ns.sketching import PinholeCamera, SketchSession, import_canvases, write_canvases
+from sked_ns.sketches import DataparserTransform
+
+VIEW_WIDTH = 512
+"""Width of a captured view; the height follows the browser window's aspect."""
+
+
+def _load(run: Path, device: str):
+    """(config, pipeline, dataparser transform) of a base run, with a clear error if it does not load."""
+    from sked_ns.render import load_pipeline
+
+    run = run.parent if run.name == "config.yml" else run
+    try:
+        pipeline = load_pipeline(run, device)
+    except (FileNotFoundError, ValueError) as error:
+        raise SystemExit(f"sked-sketch: {error}") from error
+    transform = pipeline.datamanager.train_dataparser_outputs
+    return run, pipeline, DataparserTransform(transform.dataparser_transform.numpy().astype(np.float64),
+                                              float(transform.dataparser_scale))
+
+
+def renderer(pipeline, lock: Optional[threading.Lock] = None):
+    """PinholeCamera -> (h, w, 3) numpy render of the pipeline's model."""
+    from sked_ns.render import render_camera
+    from sked_ns.sked_datamanager import cameras_of
+
+    def render(camera: PinholeCamera) -> np.ndarray:
+        cameras = cameras_of(torch.tensor(camera.camera_to_world[None], dtype=torch.float32), camera.fl_x,
+                             camera.fl_y, camera.cx, camera.cy, camera.width, camera.height)
+        with lock or threading.Lock():
+            return render_camera(pipeline.model, cameras)["rgb"].numpy()
+
+    return render
+
+
+def client_camera(server, width: int = VIEW_WIDTH) -> Optional[PinholeCamera]:
+    """The first connected browser's camera (model frame), as nerfstudio's ViewerControl reads it."""
+    import viser.transforms as vtf
+    from nerfstudio.cameras.cameras import CameraType
+    from nerfstudio.viewer.utils import CameraState, get_camera
+    from nerfstudio.viewer.viewer import VISER_NERFSTUDIO_SCALE_RATIO
+
+    clients = server.get_clients()
+    if not clients:
+        return None
+    client = clients[min(clients)]
+    rotation = vtf.SO3(wxyz=client.camera.wxyz) @ vtf.SO3.from_x_radians(np.pi)
+    position = torch.tensor(client.camera.position, dtype=torch.float64) / VISER_NERFSTUDIO_SCALE_RATIO
+    c2w = torch.cat([torch.tensor(rotation.as_matrix()), position[:, None]], dim=1)
+    state = CameraState(fov=client.camera.fov, aspect=client.camera.aspect, c2w=c2w, camera_type=CameraType.PERSPECTIVE)
+    height = max(1, round(width / client.camera.aspect))
+    return PinholeCamera.from_nerfstudio(get_camera(state, height, width))
+
+
+class SketchPanel:
+    """The SKED folder in the viewer's control panel."""
+
+    def __init__(self, server, session: SketchSession, out: Path) -> None:
+        self.server, self.session = server, session
+        self.handles: list = []  # scene nodes of the saved views and the edit box
+        self.last_message = ""
+        gui = server.gui
+        with gui.add_folder("SKED sketch"):
+            self.status = gui.add_markdown("Move to a view of the region, then **Capture view**.")
+            self.capture_button = gui.add_button("Capture view")
+            self.close_button = gui.add_button("Close scribble", disabled=True)
+            self.upload_button = gui.add_upload_button("Upload mask", mime_type="image/png", disabled=True)
+            self.clear_button = gui.add_button("Clear mask", disabled=True)
+            self.add_button = gui.add_button("Add view", disabled=True)
+            self.remove_button = gui.add_button("Remove last view", disabled=True)
+            self.out_text = gui.add_text("Save to", initial_value=str(out))
+            self.save_button = gui.add_button("Save sketch set", disabled=True)
+        self.capture_button.on_click(lambda _: self._guarded(self.capture))
+        self.close_button.on_click(lambda _: self._guarded(self.close_scribble))
+        self.upload_button.on_upload(lambda event: self._guarded(lambda: self.upload(event.target.value)))
+        self.clear_button.on_click(lambda _: self._guarded(self.clear))
+        self.add_button.on_click(lambda _: self._guarded(self.add_view))
+        self.remove_button.on_click(lambda _: self._guarded(self.remove_last))
+        self.save_button.on_click(lambda _: self._guarded(self.save))
+
+    # ---- actions (also called directly by tests) ---------------------------------------------
+    def capture(self) -> None:
+        self.session.capture(client_camera(self.server))
+        self.server.scene.on_pointer_event("click")(self._on_click)
+        self._show_pending()
+        self._set_drawing(True)
+        self._say("Click the points of a closed outline around the region (or upload a mask), then **Add view**.")
+
+    def _on_click(self, event) -> None:
+        self._guarded(lambda: self.click(*event.screen_pos[0]))
+
+    def click(self, x: float, y: float) -> None:
+        count = self.session.add_point(x, y)
+        self._show_pending()
+        self._say(f"{count} point(s); **Close scribble** when the outline is complete.")
+
+    def close_scribble(self) -> None:
+        self.session.close_scribble()
+        self._show_pending()
+        self._say("Outline filled. Add another outline, or **Add view**.")
+
+    def upload(self, uploaded) -> None:
+        warning = self.session.upload_mask(uploaded.content, uploaded.name)
+        self._show_pending()
+        self._say(warning or f"{uploaded.name}: mask loaded.")
+
+    def clear(self) -> None:
+        self.session.clear()
+        self._show_pending()
+
+    def add_view(self) -> None:
+        self.session.add_view()
+        self.server.scene.remove_pointer_callback()
+        self._set_drawing(False)
+        self._show_views()
+        box = self.session.edit_box()
+        self._say(f"{len(self.session.views)} view(s)." + (
+            f" Edit box {np.round(box.min, 2).tolist()} .. {np.round(box.max, 2).tolist()}." if box else
+            " Sketch the same region from a second viewpoint."))
+
+    def remove_last(self) -> None:
+        self.session.remove_view(len(self.session.views) - 1)
+        self._show_views()
+        self._say(f"{len(self.session.views)} view(s).")
+
+    def save(self) -> Path:
+        path = self.session.save(Path(self.out_text.value))
+        self._say(f"Saved {len(self.session.views)} views to `{path}`.")
+        return path
+
+    # ---- display ------------------------------------------------------------------------
+    def _guarded(self, action) -> None:
+        try:
+            action()
+        except (ValueError, FileExistsError) as error:
+            self._say(f"**Error:** {error}")
+        except Exception as error:  # a callback thread would swallow it: show it in the panel
+            self._say(f"**Unexpected error:** {type(error).__name__}: {error}")
+            raise
+
+    def _say(self, message: str) -> None:
+        self.status.content = message
+        self.last_message = message
+
+    def _set_drawing(self, drawing: bool) -> None:
+        for button in (self.close_button, self.upload_button, self.clear_button, self.add_button):
+            button.disabled = not drawing
+        self.remove_button.disabled = not self.session.views
+        self.save_button.disabled = len(self.session.views) < 2
+
+    def _show_pending(self) -> None:
+        pending = self.session.pending
+        if pending is not None:
+            add_frustum(self.server, "/sked/pending", pending.camera, self.session.preview(), (255, 160, 0))
+
+    def _show_views(self) -> None:
+        for handle in self.handles:
+            handle.remove()
+        self.handles = show_sketch_views(self.server, self.session.views, self.session.edit_box())
+        self._set_drawing(False)
+
+
+def add_frustum(server, name: str, camera: PinholeCamera, image: np.ndarray, colour):
+    """A camera frustum showing `image` in the viewer's scene (model frame, viser's scale)."""
+    import viser.transforms as vtf
+    from nerfstudio.viewer.viewer import VISER_NERFSTUDIO_SCALE_RATIO
+
+    rotation = vtf.SO3.from_matrix(camera.camera_to_world[:, :3]) @ vtf.SO3.from_x_radians(np.pi)
+    return server.scene.add_camera_frustum(
+        name, fov=float(2 * np.arctan(camera.height / 2 / camera.fl_y)), aspect=camera.width / camera.height,
+        scale=0.15, image=(np.clip(image, 0, 1) * 255).astype(np.uint8), color=colour, wxyz=rotation.wxyz,
+        position=camera.camera_to_world[:, 3] * VISER_NERFSTUDIO_SCALE_RATIO,
+    )
+
+
+def show_sketch_views(server, views, edit_box=None, prefix: str = "/sked") -> list:
+    """Each sketch view as a frustum showing its mask, and the edit box as a wireframe; returns the nodes."""
+    from nerfstudio.viewer.viewer import VISER_NERFSTUDIO_SCALE_RATIO
+
+    handles = []
+    for index, view in enumerate(views):
+        image = np.repeat(view.mask[..., None], 3, axis=-1).astype(np.float64)
+        camera = PinholeCamera(view.camera_to_world, view.fl_x, view.fl_y, view.cx, view.cy, view.width, view.height)
+        handles.append(add_frustum(server, f"{prefix}/view_{index:02d}", camera, image, (220, 30, 30)))
+    if edit_box is not None:
+        corners = np.array([[x, y, z] for x in (0, 1) for y in (0, 1) for z in (0, 1)], dtype=np.float64)
+        vertices = (edit_box.min + corners * edit_box.size) * VISER_NERFSTUDIO_SCALE_RATIO
+        # The 12 triangles of the box's 6 faces, drawn as a wireframe so it never hides the scene.
+        faces = np.array([[0, 1, 3], [0, 3, 2], [4, 6, 7], [4, 7, 5], [0, 4, 5], [0, 5, 1], [2, 3, 7], [2, 7, 6],
+                          [0, 2, 6], [0, 6, 4], [1, 5, 7], [1, 7, 3]])
+        handles.append(server.scene.add_mesh_simple(f"{prefix}/edit_box", vertices=vertices.astype(np.float32),
+                                                    faces=faces, color=(255, 80, 80), wireframe=True))
+    return handles
+
+
+def start_viewer(run: Path, out: Path, port: Optional[int] = None, device: str = "cpu"):
+    """nerfstudio's viewer on the base with the SKED panel; returns (viewer state, panel)."""
+    from nerfstudio.viewer.viewer import Viewer as ViewerState
+
+    from sked_ns.base_scene import resolve_base
+
+    run, pipeline, transform = _load(run, device)
+    viewer_config = resolve_base(run).config.viewer
+    if port is not None:
+        viewer_config.websocket_port = port
+    lock = threading.Lock()
+    log_dir = Path(tempfile.mkdtemp(prefix="sked-sketch-"))  # never write into the base's run folder
+    viewer = ViewerState(viewer_config, log_filename=log_dir / "viewer_log.txt",
+                         datapath=pipeline.datamanager.get_datapath(), pipeline=pipeline, train_lock=lock)
+    viewer.init_scene(train_dataset=pipeline.datamanager.train_dataset, train_state="completed",
+                      eval_dataset=pipeline.datamanager.eval_dataset)
+    viewer.update_scene(step=0)
+    session = SketchSession(renderer(pipeline, lock), transform, pipeline.model.scene_box.aabb.numpy())
+    return viewer, SketchPanel(viewer.viser_server, session, out)
+
+
+def training_cameras(pipeline, indices: List[int]) -> List[PinholeCamera]:
+    cameras = pipeline.datamanager.train_dataset.cameras
+    for index in indices:
+        if not 0 <= index < len(cameras):
+            raise SystemExit(f"sked-sketch: --images {index}: the base has {len(cameras)} training images (0..{len(cameras) - 1}).")
+    return [PinholeCamera.from_nerfstudio(cameras[index : index + 1]) for index in indices]
+
+
+def entrypoint(argv: Optional[List[str]] = None) -> None:
+    argv = sys.argv[1:] if argv is None else argv
+    device = "cuda" if torch.cuda.is_available() else "cpu"
+    if argv and argv[0] == "canvases":
+        parser = argparse.ArgumentParser(prog="sked-sketch canvases", description="Render canvases to paint masks on.")
+        parser.add_argument("base", type=Path, help="base run folder or its config.yml")
+        parser.add_argument("folder", type=Path, help="new folder for view_XX.png and canvases.json")
+        parser.add_argument("--images", type=int, nargs="+", required=True, help="training image indices to render")
+        args = parser.parse_args(argv[1:])
+        _, pipeline, transform = _load(args.base, device)
+        path = write_canvases(renderer(pipeline), training_cameras(pipeline, args.images), transform, args.folder,
+                              names=[f"training image {i}" for i in args.images])
+        print(f"wrote {path}: paint the region on a copy of each view_XX.png saved as view_XX_sketch.png "
+              f"(or a white-on-black view_XX_mask.png), then run: sked-sketch import {args.folder} --out SKETCHES")
+        return
+    if argv and argv[0] == "import":
+        parser = argparse.ArgumentParser(prog="sked-sketch import", description="Painted canvases -> sketch set.")
+        parser.add_argument("folder", type=Path)
+        parser.add_argument("--out", type=Path, required=True)
+        args = parser.parse_args(argv[1:])
+        try:
+            print(f"wrote {import_canvases(args.folder, args.out)}")
+        except (ValueError, FileNotFoundError, FileExistsError) as error:
+            raise SystemExit(f"sked-sketch import: {error}") from error
+        return
+    parser = argparse.ArgumentParser(prog="sked-sketch", description=__doc__.split("\n")[0],
+                                     epilog="Subcommands: `canvases` and `import` (headless).")
+    parser.add_argument("base", type=Path, help="base run folder or its config.yml")
+    parser.add_argument("--out", type=Path, required=True, help="folder to save the sketch set into (must be new)")
+    parser.add_argument("--port", type=int, default=None)
+    args = parser.parse_args(argv)
+    viewer, _ = start_viewer(args.base, args.out, args.port, device)
+    print(f"SKED sketching: open {viewer.viewer_info[0] if viewer.viewer_info else 'the viewer'} in a browser.")
+    while True:
+        time.sleep(0.1)
+
+
+if __name__ == "__main__":
+    entrypoint()

@@ -1,0 +1,109 @@
+"""The SKED sketch panel driven in a real browser (headless Chromium through Playwright).
+
+Opens `sked-sketch`'s viewer on the tiny base, waits for the SKED panel, captures two views
+from two camera positions, clicks an outline in each, adds the views, saves the set, loads it
+back, and keeps a screenshot in test-artifacts/ (or $SKED_TEST_ARTIFACTS).
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import socket
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from sked_ns.sketches import load_sketch_set
+
+ROOT = Path(__file__).resolve().parents[1]
+ARTIFACTS = Path(os.environ.get("SKED_TEST_ARTIFACTS", ROOT / "test-artifacts"))
+
+
+def _chromium() -> str:
+    path = shutil.which("chromium") or shutil.which("chromium-browser")
+    if path is None:
+        pytest.skip("Chromium is not installed (Debian: apt-get install chromium; `bash .ci/test` does it as root)")
+    try:
+        import playwright.sync_api  # noqa: F401
+    except ImportError:
+        pytest.skip("Playwright is not installed (pip install -e '.[test]')")
+    return path
+
+
+def _free_port() -> int:
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        return sock.getsockname()[1]
+
+
+def _wait(condition, what: str, timeout: float = 120.0, panel=None):
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        value = condition()
+        if value:
+            return value
+        time.sleep(0.2)
+    raise AssertionError(f"timed out waiting for {what}" + (f"; the panel says: {panel.last_message}" if panel else ""))
+
+
+def test_sketch_panel_in_a_real_browser(scene, tmp_path):
+    chromium = _chromium()
+    from playwright.sync_api import sync_playwright
+
+    from sked_ns.sketch_viewer import start_viewer
+
+    out = tmp_path / "sketches"
+    port = _free_port()
+    viewer, panel = start_viewer(scene["base"], out, port=port)
+    server = viewer.viser_server
+    ARTIFACTS.mkdir(parents=True, exist_ok=True)
+    try:
+        with sync_playwright() as playwright:
+            browser = playwright.chromium.launch(
+                executable_path=chromium, headless=True,
+                args=["--no-sandbox", "--use-angle=swiftshader", "--enable-unsafe-swiftshader", "--ignore-gpu-blocklist"],
+            )
+            page = browser.new_page(viewport={"width": 1100, "height": 750})
+            page.on("dialog", lambda dialog: dialog.dismiss())
+            page.goto(f"http://127.0.0.1:{port}")
+            capture = page.get_by_role("button", name="Capture view")
+            capture.wait_for(timeout=120_000)
+            client = _wait(lambda: next(iter(server.get_clients().values()), None), "the browser to connect")
+            canvas = page.locator("canvas").first
+            for position in ((20.0, -20.0, 10.0), (-20.0, -20.0, 12.0)):  # viser units: 10 x nerfstudio's
+                client.camera.position = position
+                client.camera.look_at = (0.0, 0.0, 0.0)
+                time.sleep(1.0)
+                capture.click()
+                _wait(lambda: panel.session.pending is not None, "the captured view", panel=panel)
+                box = canvas.bounding_box()
+                corners = [(0.45, 0.40), (0.55, 0.40), (0.55, 0.50), (0.45, 0.50)]  # a small square on the canvas
+                for index, (x, y) in enumerate(corners):
+                    page.mouse.click(box["x"] + x * box["width"], box["y"] + y * box["height"])
+                    _wait(lambda n=index + 1: len(panel.session.pending.points) >= n, f"click {index + 1}", panel=panel)
+                page.get_by_role("button", name="Close scribble").click()
+                _wait(lambda: panel.session.pending.mask.any(), "the filled outline", panel=panel)
+                wanted = len(panel.session.views) + 1
+                page.get_by_role("button", name="Add view").click()
+                _wait(lambda: len(panel.session.views) >= wanted, "the added view", panel=panel)
+            page.get_by_role("button", name="Save sketch set").click()
+            _wait(lambda: (out / "sketches.json").exists(), "the saved sketch set", panel=panel)
+            page.wait_for_timeout(1000)
+            page.screenshot(path=str(ARTIFACTS / "sked_sketch_panel.png"))
+            assert page.get_by_text("Saved 2 views").count() >= 1
+            browser.close()
+    finally:
+        server.stop()
+    sketches = load_sketch_set(out)
+    assert len(sketches.views) == 2
+    for view in sketches.views:
+        # The clicked square: about 10% x 10% of the view, around its centre.
+        fraction = view.mask.mean()
+        assert 0.003 < fraction < 0.03, fraction
+        rows, cols = np.nonzero(view.mask)
+        height, width = rows.ptp() + 1, cols.ptp() + 1
+        assert 0.5 < height / width < 2 and view.mask.sum() > 0.8 * height * width, "the clicked square, filled"
+    assert (ARTIFACTS / "sked_sketch_panel.png").stat().st_size > 10_000

@@ -1,0 +1,140 @@
+"""The viewer side: the sked-sketch panel on a real base, steering controls, the headless CLI."""
+
+from __future__ import annotations
+
+import shutil
+import socket
+import subprocess
+import sys
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+import torch
+
+from sked_ns.sketches import load_sketch_set
+
+
+def _free_port() -> int:
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        return sock.getsockname()[1]
+
+
+def _sked_sketch() -> str:
+    return shutil.which("sked-sketch", path=str(Path(sys.executable).parent)) or shutil.which("sked-sketch")
+
+
+@pytest.fixture(scope="module")
+def sketch_viewer(scene, tmp_path_factory):
+    from sked_ns.sketch_viewer import start_viewer
+
+    out = tmp_path_factory.mktemp("drawn") / "sketches"
+    viewer, panel = start_viewer(scene["base"], out, port=_free_port())
+    yield {"viewer": viewer, "panel": panel, "out": out}
+    viewer.viser_server.stop()
+
+
+def test_panel_without_a_browser_says_so(sketch_viewer):
+    panel = sketch_viewer["panel"]
+    panel._guarded(panel.capture)
+    assert "No viewer client is connected" in panel.last_message
+    assert panel.save_button.disabled and panel.add_button.disabled
+
+
+def test_panel_draws_two_views_and_saves_the_set(scene, sketch_viewer, monkeypatch):
+    """Every panel action, with the browser's camera replaced by the hat's sketch cameras."""
+    import sked_ns.sketch_viewer as sketch_viewer_module
+    from sked_ns import demo_scene
+    from sked_ns.sketching import PinholeCamera
+
+    panel = sketch_viewer["panel"]
+    transform = panel.session.transform
+    base_files = {p: p.read_bytes() for p in scene["base"].rglob("*") if p.is_file()}
+    for view in demo_scene.SCENES["hat"].sketch_set(size=48).in_model_frame(transform).views:
+        camera = PinholeCamera(view.camera_to_world, view.fl_x, view.fl_y, view.cx, view.cy, view.width, view.height)
+        monkeypatch.setattr(sketch_viewer_module, "client_camera", lambda server, width=512, c=camera: c)
+        panel.capture()
+        assert not panel.add_button.disabled
+        canvas = panel.session.pending.canvas
+        assert canvas.shape == (48, 48, 3) and canvas.std() > 0.01, "a real render of the base"
+        ys, xs = np.nonzero(view.mask)
+        for x, y in [(xs.min(), ys.min()), (xs.max() + 1, ys.min()), (xs.max() + 1, ys.max() + 1), (xs.min(), ys.max() + 1)]:
+            panel.click(x / 48, y / 48)
+        panel.close_scribble()
+        panel.add_view()
+    assert "Edit box" in panel.last_message and not panel.save_button.disabled
+    path = panel.save()
+    saved = load_sketch_set(path.parent)
+    assert len(saved.views) == 2 and saved.frame == "data"
+    panel._guarded(panel.save)
+    assert "never overwritten" in panel.last_message
+    assert {p: p.read_bytes() for p in scene["base"].rglob("*") if p.is_file()} == base_files, "base untouched"
+
+
+def test_headless_canvases_round_trip_through_the_cli(scene, tmp_path):
+    canvases = tmp_path / "canvases"
+    result = subprocess.run([_sked_sketch(), "canvases", str(scene["base"]), str(canvases), "--images", "0", "5"],
+                            capture_output=True, text=True, timeout=600)
+    assert result.returncode == 0, result.stderr[-3000:]
+    for index in range(2):
+        canvas = cv2.imread(str(canvases / f"view_{index:02d}.png"))
+        assert canvas is not None and canvas.std() > 2, "the base rendered at a training camera"
+        painted = canvas.copy()
+        cv2.circle(painted, (48, 20), 10, (0, 0, 255), 2)  # a closed red stroke around the top of the sphere
+        cv2.imwrite(str(canvases / f"view_{index:02d}_sketch.png"), painted)
+    result = subprocess.run([_sked_sketch(), "import", str(canvases), "--out", str(tmp_path / "sketches")],
+                            capture_output=True, text=True, timeout=600)
+    assert result.returncode == 0, result.stderr[-3000:]
+    sketches = load_sketch_set(tmp_path / "sketches")
+    assert all(300 < view.mask.sum() < 500 for view in sketches.views), "the filled circle, about pi 10^2 px"
+    bad = subprocess.run([_sked_sketch(), "canvases", str(scene["base"]), str(tmp_path / "c2"), "--images", "99"],
+                         capture_output=True, text=True, timeout=600)
+    assert bad.returncode != 0 and "--images 99" in bad.stderr
+
+
+def test_sked_sketch_on_a_folder_that_is_not_a_run(tmp_path):
+    result = subprocess.run([_sked_sketch(), str(tmp_path), "--out", str(tmp_path / "s")], capture_output=True,
+                            text=True, timeout=600)
+    assert result.returncode != 0 and "config.yml" in result.stderr
+
+
+def test_steering_controls_change_what_the_viewer_shows(scene, tmp_path):
+    from sked_ns.edit_run import edit_config
+    from sked_ns.render import render_at, render_base_at
+    from sked_ns.sked_trainer import resolve_edit
+
+    config = edit_config(scene["base"], scene["data"], scene["sketches"], tmp_path, iterations=2)
+    resolve_edit(config)
+    model = config.pipeline.setup(device="cpu", test_mode="val").model
+    with torch.no_grad():  # make the edit differ from the base
+        for parameter in model.field.mlp_head.parameters():
+            parameter.add_(0.5)
+    view = model.sketch_set.views[0]
+    edit, base = render_at(model, view, 24), render_base_at(model, view, 24)
+    assert (edit["rgb"] - base["rgb"]).abs().max() > 0.05
+    model.viewer_show_base.value = True
+    assert torch.equal(render_at(model, view, 24)["rgb"], base["rgb"])
+    model.viewer_show_base.value = False
+    from sked_ns.sked_datamanager import sketch_view_at
+
+    camera = sketch_view_at(view, 24)[0]
+    model.eval()
+    with torch.no_grad():
+        plain = model.get_outputs_for_camera(camera)
+        model.viewer_tint.value = True
+        tinted = model.get_outputs_for_camera(camera)
+    editable = (plain["preservation_weight"][..., 0] < 0.5)
+    changed = (tinted["rgb"] - plain["rgb"]).abs().amax(-1) > 1e-3
+    assert changed[editable].all() and not changed[plain["preservation_weight"][..., 0] > 0.999].any()
+    before = plain["preservation_weight"].clone()
+    model.viewer_beta.value = 0.2
+    model.viewer_beta.cb_hook(model.viewer_beta)
+    assert model.config.beta == 0.2
+    with torch.no_grad():
+        wider = model.get_outputs_for_camera(camera)["preservation_weight"]
+    assert (wider <= before + 1e-6).all() and (wider < before - 0.05).any(), "a larger beta preserves less"
+    model.viewer_beta.value = -1.0
+    with pytest.raises(ValueError):
+        model.viewer_beta.cb_hook(model.viewer_beta)
