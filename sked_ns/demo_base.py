@@ -42,11 +42,11 @@ class TinyNerfacto:
     proposal_samples: tuple = (64, 32)
 
 
-def nerfacto_config(data: Path, output_dir: Path, tiny: TinyNerfacto = TinyNerfacto()):
-    """`ns-train nerfacto` config for the demo data, shrunk to `tiny`, on the CPU."""
-    config = copy.deepcopy(method_configs["nerfacto"])
+def _cpu_run_config(method: str, data: Path, output_dir: Path, experiment: str):
+    """`ns-train METHOD` for the demo data on the CPU, saved under output_dir/experiment/METHOD/base."""
+    config = copy.deepcopy(method_configs[method])
     config.output_dir = output_dir
-    config.experiment_name = "demo-base"
+    config.experiment_name = experiment
     config.timestamp = "base"
     config.machine.device_type = "cpu"
     config.vis = "tensorboard"
@@ -54,6 +54,12 @@ def nerfacto_config(data: Path, output_dir: Path, tiny: TinyNerfacto = TinyNerfa
     config.pipeline.datamanager = VanillaDataManagerConfig(
         data=data, dataparser=NerfstudioDataParserConfig(data=data), train_num_rays_per_batch=1024
     )
+    return config
+
+
+def nerfacto_config(data: Path, output_dir: Path, tiny: TinyNerfacto = TinyNerfacto()):
+    """`ns-train nerfacto` config for the demo data, shrunk to `tiny`, on the CPU."""
+    config = _cpu_run_config("nerfacto", data, output_dir, "demo-base")
     model = config.pipeline.model
     model.implementation = "torch"
     model.camera_optimizer = CameraOptimizerConfig(mode="off")
@@ -75,15 +81,7 @@ def nerfacto_config(data: Path, output_dir: Path, tiny: TinyNerfacto = TinyNerfa
 
 def ngp_config(data: Path, output_dir: Path, tiny: TinyNerfacto = TinyNerfacto(), method: str = "instant-ngp"):
     """`ns-train instant-ngp(-bounded)` config for the demo data: a coarse grid and long steps for the CPU."""
-    config = copy.deepcopy(method_configs[method])
-    config.output_dir = output_dir
-    config.experiment_name = "demo-base-ngp"
-    config.timestamp = "base"
-    config.machine.device_type = "cpu"
-    config.vis = "tensorboard"
-    config.pipeline.datamanager = VanillaDataManagerConfig(
-        data=data, dataparser=NerfstudioDataParserConfig(data=data), train_num_rays_per_batch=1024
-    )
+    config = _cpu_run_config(method, data, output_dir, "demo-base-ngp")
     model = config.pipeline.model
     model.background_color = "white"
     model.log2_hashmap_size = tiny.log2_hashmap_size
