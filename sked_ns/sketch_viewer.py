@@ -11,6 +11,7 @@ driving a `SketchSession`. The base run is only read (the viewer's log goes to a
 from __future__ import annotations
 
 import argparse
+import contextlib
 import sys
 import tempfile
 import threading
@@ -50,7 +51,7 @@ def renderer(pipeline, lock: Optional[threading.Lock] = None):
     def render(camera: PinholeCamera) -> np.ndarray:
         cameras = cameras_of(torch.tensor(camera.camera_to_world[None], dtype=torch.float32), camera.fl_x,
                              camera.fl_y, camera.cx, camera.cy, camera.width, camera.height)
-        with lock or threading.Lock():
+        with lock or contextlib.nullcontext():
             return render_camera(pipeline.model, cameras)["rgb"].numpy()
 
     return render

@@ -46,3 +46,12 @@ def near_pixel_edge(point, view, tolerance=1e-3):
     if pixel is None:
         return False
     return any(abs(c - round(c)) < tolerance * max(1.0, abs(c)) for c in pixel)
+
+
+def file_digests(folder):
+    """sha256 of every file under `folder`: proves a run folder was only read."""
+    import hashlib
+    from pathlib import Path
+
+    folder = Path(folder)
+    return {p.relative_to(folder): hashlib.sha256(p.read_bytes()).hexdigest() for p in sorted(folder.rglob("*")) if p.is_file()}

@@ -7,13 +7,13 @@ whose target is that scene with a hat, so the outcome is known.
 
 from __future__ import annotations
 
-import hashlib
 import math
 import shutil
 from pathlib import Path
 
 import pytest
 import torch
+from reference import file_digests
 import yaml
 
 from sked_ns import demo_scene
@@ -27,13 +27,10 @@ from sked_ns.sketches import SketchSet, SketchView, load_sketch_set, save_sketch
 ITERATIONS = 60
 
 
-def _digest(folder: Path) -> dict:
-    return {p.relative_to(folder): hashlib.sha256(p.read_bytes()).hexdigest() for p in sorted(folder.rglob("*")) if p.is_file()}
-
 
 @pytest.fixture(scope="module")
 def edited(scene):
-    before = _digest(scene["base"])
+    before = file_digests(scene["base"])
     config = edit_config(scene["base"] / "nerfstudio_models", scene["data"], scene["sketches"],
                          scene["root"] / "edits", iterations=ITERATIONS, guidance_resolution=24,
                          silhouette_resolution=24, steps_per_save=20)
@@ -66,7 +63,7 @@ def test_edit_fills_the_sketch_and_keeps_the_rest(scene, edited):
 
 
 def test_base_files_untouched_and_base_field_frozen(scene, edited):
-    assert _digest(scene["base"]) == edited["base_digest_before"]
+    assert file_digests(scene["base"]) == edited["base_digest_before"]
     model = edited["trainer"].pipeline.model
     base_state = read_model_state(resolve_base(scene["base"]).checkpoint)
     frozen = model.base_field.state_dict()

@@ -2,11 +2,11 @@
 
 from __future__ import annotations
 
-import hashlib
 from pathlib import Path
 
 import pytest
 import torch
+from reference import file_digests
 
 from sked_ns.base_scene import read_model_state
 from sked_ns.edit_run import edit_config, run_edit
@@ -18,13 +18,10 @@ from sked_ns.sked_trainer import resolve_edit
 ITERATIONS = 60
 
 
-def _digest(folder: Path) -> dict:
-    return {p.relative_to(folder): hashlib.sha256(p.read_bytes()).hexdigest() for p in sorted(folder.rglob("*")) if p.is_file()}
-
 
 @pytest.fixture(scope="module")
 def ngp_edited(ngp_scene):
-    before = _digest(ngp_scene["base"])
+    before = file_digests(ngp_scene["base"])
     config = edit_config(ngp_scene["base"], ngp_scene["data"], ngp_scene["sketches"], ngp_scene["root"] / "ngp-edits",
                          iterations=ITERATIONS, guidance_resolution=24, silhouette_resolution=24, steps_per_save=30)
     trainer = run_edit(config)
@@ -91,7 +88,7 @@ def test_ngp_edit_fills_the_sketch_and_keeps_the_rest(ngp_scene, ngp_edited):
 
 
 def test_ngp_base_untouched_and_frozen(ngp_scene, ngp_edited):
-    assert _digest(ngp_scene["base"]) == ngp_edited["base_digest_before"]
+    assert file_digests(ngp_scene["base"]) == ngp_edited["base_digest_before"]
     model = ngp_edited["trainer"].pipeline.model
     base = read_model_state(model.config.base_checkpoint)
     for key, value in model.base_field.state_dict().items():
