@@ -27,6 +27,9 @@ from sked_ns.sketches import DataparserTransform
 
 VIEW_WIDTH = 512
 """Width of a captured view; the height follows the browser window's aspect."""
+CPU_PREVIEW_WIDTH = 160
+"""On a CPU the captured view's picture is rendered this wide and upsampled: it is only the
+backdrop to click on (the mask keeps VIEW_WIDTH), and a full render takes seconds there."""
 
 
 def _load(run: Path, device: str):
@@ -43,16 +46,25 @@ def _load(run: Path, device: str):
                                               float(transform.dataparser_scale))
 
 
-def renderer(pipeline, lock: Optional[threading.Lock] = None):
-    """PinholeCamera -> (h, w, 3) numpy render of the pipeline's model."""
+def renderer(pipeline, lock: Optional[threading.Lock] = None, max_width: Optional[int] = None):
+    """PinholeCamera -> (h, w, 3) numpy render of the pipeline's model; rendered at most
+    `max_width` wide (same field of view) and resized to the camera's size."""
+    import cv2
+
     from sked_ns.render import render_camera
     from sked_ns.sked_datamanager import cameras_of
 
     def render(camera: PinholeCamera) -> np.ndarray:
-        cameras = cameras_of(torch.tensor(camera.camera_to_world[None], dtype=torch.float32), camera.fl_x,
-                             camera.fl_y, camera.cx, camera.cy, camera.width, camera.height)
+        scale = min(1.0, max_width / camera.width) if max_width else 1.0
+        width, height = max(1, round(camera.width * scale)), max(1, round(camera.height * scale))
+        sx, sy = width / camera.width, height / camera.height
+        cameras = cameras_of(torch.tensor(camera.camera_to_world[None], dtype=torch.float32), camera.fl_x * sx,
+                             camera.fl_y * sy, camera.cx * sx, camera.cy * sy, width, height)
         with lock or contextlib.nullcontext():
-            return render_camera(pipeline.model, cameras)["rgb"].numpy()
+            image = render_camera(pipeline.model, cameras)["rgb"].numpy()
+        if (width, height) != (camera.width, camera.height):
+            image = cv2.resize(image, (camera.width, camera.height), interpolation=cv2.INTER_LINEAR)
+        return image
 
     return render
 
@@ -83,6 +95,7 @@ class SketchPanel:
         self.server, self.session = server, session
         self.handles: list = []  # scene nodes of the saved views and the edit box
         self.last_message = ""
+        self._capturing = threading.Lock()  # repeated presses while a view renders are ignored
         gui = server.gui
         with gui.add_folder("SKED sketch"):
             self.status = gui.add_markdown("Move to a view of the region, then **Capture view**.")
@@ -104,7 +117,14 @@ class SketchPanel:
 
     # ---- actions (also called directly by tests) ---------------------------------------------
     def capture(self) -> None:
-        self.session.capture(client_camera(self.server))
+        if not self._capturing.acquire(blocking=False):
+            self._say("Still rendering the captured view...")
+            return
+        try:
+            self._say("Rendering the captured view...")
+            self.session.capture(client_camera(self.server))
+        finally:
+            self._capturing.release()
         self.server.scene.on_pointer_event("click")(self._on_click)
         self._show_pending()
         self._set_drawing(True)
@@ -234,8 +254,25 @@ def start_viewer(run: Path, out: Path, port: Optional[int] = None, device: str =
     viewer.init_scene(train_dataset=pipeline.datamanager.train_dataset, train_state="completed",
                       eval_dataset=pipeline.datamanager.eval_dataset)
     viewer.update_scene(step=0)
-    session = SketchSession(renderer(pipeline, lock), transform, pipeline.model.scene_box.aabb.numpy())
+    preview_width = CPU_PREVIEW_WIDTH if device == "cpu" else None
+    session = SketchSession(renderer(pipeline, lock, preview_width), transform, pipeline.model.scene_box.aabb.numpy())
     return viewer, SketchPanel(viewer.viser_server, session, out)
+
+
+def stop_viewer(viewer) -> None:
+    """Stop the server and join the per-browser render threads, so none is mid-render when the
+    interpreter exits (torch then aborts the process)."""
+    from nerfstudio.viewer.render_state_machine import RenderStateMachine
+
+    # A closed browser's machine has already left viewer.render_statemachines but may still render.
+    machines = [thread for thread in threading.enumerate()
+                if isinstance(thread, RenderStateMachine) and thread.viewer is viewer]
+    viewer.viser_server.stop()
+    for machine in machines:
+        machine.running = False
+        machine.interrupt_render_flag = True
+    for machine in machines:
+        machine.join(timeout=60)
 
 
 def training_cameras(pipeline, indices: List[int]) -> List[PinholeCamera]:
@@ -279,8 +316,11 @@ def entrypoint(argv: Optional[List[str]] = None) -> None:
     args = parser.parse_args(argv)
     viewer, _ = start_viewer(args.base, args.out, args.port, device)
     print(f"SKED sketching: open {viewer.viewer_info[0] if viewer.viewer_info else 'the viewer'} in a browser.")
-    while True:
-        time.sleep(0.1)
+    try:
+        while True:
+            time.sleep(0.1)
+    finally:
+        stop_viewer(viewer)
 
 
 if __name__ == "__main__":

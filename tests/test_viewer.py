@@ -28,12 +28,12 @@ def _sked_sketch() -> str:
 
 @pytest.fixture(scope="module")
 def sketch_viewer(scene, tmp_path_factory):
-    from sked_ns.sketch_viewer import start_viewer
+    from sked_ns.sketch_viewer import start_viewer, stop_viewer
 
     out = tmp_path_factory.mktemp("drawn") / "sketches"
     viewer, panel = start_viewer(scene["base"], out, port=_free_port())
     yield {"viewer": viewer, "panel": panel, "out": out}
-    viewer.viser_server.stop()
+    stop_viewer(viewer)
 
 
 def test_panel_without_a_browser_says_so(sketch_viewer):
@@ -138,3 +138,29 @@ def test_steering_controls_change_what_the_viewer_shows(scene, tmp_path):
     model.viewer_beta.value = -1.0
     with pytest.raises(ValueError):
         model.viewer_beta.cb_hook(model.viewer_beta)
+
+
+def test_cpu_preview_is_a_downscaled_render_of_the_same_view(scene):
+    """The captured view's backdrop, rendered narrower on a CPU, shows the same picture."""
+    from sked_ns import demo_scene
+    from sked_ns.sketch_viewer import _load, renderer
+    from sked_ns.sketching import PinholeCamera
+
+    _, pipeline, transform = _load(scene["base"], "cpu")
+    view = demo_scene.SCENES["hat"].sketch_set(size=64).in_model_frame(transform).views[0]
+    camera = PinholeCamera(view.camera_to_world, view.fl_x, view.fl_y, view.cx, view.cy, 64, 48)
+    full = renderer(pipeline)(camera)
+    assert np.array_equal(renderer(pipeline, max_width=64)(camera), full), "no resize when it fits"
+    preview = renderer(pipeline, max_width=32)(camera)
+    assert preview.shape == full.shape == (48, 64, 3)
+    error = np.abs(cv2.GaussianBlur(preview, (5, 5), 1.5) - cv2.GaussianBlur(full, (5, 5), 1.5)).mean()
+    flipped = np.abs(cv2.GaussianBlur(preview[::-1], (5, 5), 1.5) - cv2.GaussianBlur(full, (5, 5), 1.5)).mean()
+    assert error < 0.02 and error < flipped / 3, (error, flipped)
+
+
+def test_capture_pressed_again_while_rendering_is_ignored(sketch_viewer):
+    panel = sketch_viewer["panel"]
+    pending = panel.session.pending
+    with panel._capturing:  # a capture in progress
+        panel._guarded(panel.capture)
+    assert "Still rendering" in panel.last_message and panel.session.pending is pending
