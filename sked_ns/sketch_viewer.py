@@ -94,6 +94,7 @@ class SketchPanel:
     def __init__(self, server, session: SketchSession, out: Path) -> None:
         self.server, self.session = server, session
         self.handles: list = []  # scene nodes of the saved views and the edit box
+        self.pending_handle = None  # the frustum of the view being drawn
         self.last_message = ""
         self._capturing = threading.Lock()  # repeated presses while a view renders are ignored
         gui = server.gui
@@ -169,7 +170,8 @@ class SketchPanel:
 
     def save(self) -> Path:
         path = self.session.save(Path(self.out_text.value))
-        self._say(f"Saved {len(self.session.views)} views to `{path}`.")
+        # The folder's name only: a long unbreakable path would widen the panel past the window.
+        self._say(f"Saved {len(self.session.views)} views to **{path.parent.name}/** (the folder under *Save to*).")
         return path
 
     # ---- display ------------------------------------------------------------------------
@@ -195,12 +197,17 @@ class SketchPanel:
     def _show_pending(self) -> None:
         pending = self.session.pending
         if pending is not None:
-            add_frustum(self.server, "/sked/pending", pending.camera, self.session.preview(), (255, 160, 0))
+            self.pending_handle = add_frustum(self.server, "/sked/pending", pending.camera, self.session.preview(),
+                                              (255, 160, 0))
 
     def _show_views(self) -> None:
         for handle in self.handles:
             handle.remove()
-        self.handles = show_sketch_views(self.server, self.session.views, self.session.edit_box())
+        if self.session.pending is None and self.pending_handle is not None:  # the view was added
+            self.pending_handle.remove()
+            self.pending_handle = None
+        images = [self.session.view_image(index) for index in range(len(self.session.views))]
+        self.handles = show_sketch_views(self.server, self.session.views, self.session.edit_box(), images=images)
         self._set_drawing(False)
 
 
@@ -217,13 +224,14 @@ def add_frustum(server, name: str, camera: PinholeCamera, image: np.ndarray, col
     )
 
 
-def show_sketch_views(server, views, edit_box=None, prefix: str = "/sked") -> list:
-    """Each sketch view as a frustum showing its mask, and the edit box as a wireframe; returns the nodes."""
+def show_sketch_views(server, views, edit_box=None, prefix: str = "/sked", images=None) -> list:
+    """Each sketch view as a frustum showing its image (default: its mask), and the edit box as a
+    wireframe; returns the nodes."""
     from nerfstudio.viewer.viewer import VISER_NERFSTUDIO_SCALE_RATIO
 
     handles = []
     for index, view in enumerate(views):
-        image = np.repeat(view.mask[..., None], 3, axis=-1).astype(np.float64)
+        image = images[index] if images is not None else np.repeat(view.mask[..., None], 3, axis=-1).astype(np.float64)
         camera = PinholeCamera(view.camera_to_world, view.fl_x, view.fl_y, view.cx, view.cy, view.width, view.height)
         handles.append(add_frustum(server, f"{prefix}/view_{index:02d}", camera, image, (220, 30, 30)))
     if edit_box is not None:

@@ -71,6 +71,13 @@ class PendingView:
     """Clicked pixel positions of the scribble being drawn."""
 
 
+def tinted(canvas: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """The canvas with the masked pixels half red."""
+    image = canvas.copy()
+    image[mask] = 0.5 * image[mask] + 0.5 * np.array([1.0, 0.0, 0.0])
+    return image
+
+
 class SketchSession:
     """Sketch views being drawn over a base scene."""
 
@@ -80,6 +87,7 @@ class SketchSession:
         self.transform = transform
         self.scene_box = scene_box
         self.views: List[SketchView] = []
+        self.canvases: List[np.ndarray] = []  # the render each view was drawn on, for the viewer
         self.pending: Optional[PendingView] = None
 
     # ---- drawing one view -----------------------------------------------------------------
@@ -142,8 +150,7 @@ class SketchSession:
     def preview(self) -> np.ndarray:
         """The canvas with the mask tinted red and the open scribble's points marked."""
         pending = self._require_pending()
-        image = pending.canvas.copy()
-        image[pending.mask] = 0.5 * image[pending.mask] + 0.5 * np.array([1.0, 0.0, 0.0])
+        image = tinted(pending.canvas, pending.mask)
         for x, y in pending.points:
             cv2.circle(image, (int(x), int(y)), max(1, pending.camera.width // 100), (1.0, 0.8, 0.0), -1)
         return image
@@ -159,13 +166,19 @@ class SketchSession:
         view = SketchView(mask=pending.mask.copy(), camera_to_world=camera.camera_to_world, fl_x=camera.fl_x,
                           fl_y=camera.fl_y, cx=camera.cx, cy=camera.cy, name=f"view {len(self.views)}")
         self.views.append(view)
+        self.canvases.append(pending.canvas)
         self.pending = None
         return view
+
+    def view_image(self, index: int) -> np.ndarray:
+        """Saved view `index`: its canvas with the mask tinted, as it looked when drawn."""
+        return tinted(self.canvases[index], self.views[index].mask)
 
     def remove_view(self, index: int) -> None:
         if not 0 <= index < len(self.views):
             raise ValueError(f"No view {index}: there are {len(self.views)}.")
         del self.views[index]
+        del self.canvases[index]
 
     # ---- the set --------------------------------------------------------------------------
     def edit_box(self) -> Optional[EditBox]:

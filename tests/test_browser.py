@@ -86,7 +86,8 @@ def test_sketch_panel_in_a_real_browser(scene, tmp_path):
             capture = page.get_by_role("button", name="Capture view")
             capture.wait_for(timeout=120_000)
             client = _wait(lambda: next(iter(server.get_clients().values()), None), "the browser to connect")
-            canvas = page.locator("canvas").first
+            # The 3D viewport's canvas: viser gives it a pointer cursor while scene clicks are on.
+            canvas = page.locator('canvas[style*="cursor: pointer"]')
             try:
                 for position in ((20.0, -20.0, 10.0), (-20.0, -20.0, 12.0)):  # viser units: 10 x nerfstudio's
                     client.camera.position = position
@@ -97,6 +98,7 @@ def test_sketch_panel_in_a_real_browser(scene, tmp_path):
                     # The panel's status follows the pointer-enable message on the same socket: once the
                     # page shows it, the canvas sends clicks (a click before that is dropped by viser).
                     page.get_by_text("Click the points").first.wait_for(timeout=120_000)
+                    canvas.wait_for(timeout=120_000)
                     box = canvas.bounding_box()
                     corners = [(0.45, 0.40), (0.55, 0.40), (0.55, 0.50), (0.45, 0.50)]  # a small square on the canvas
                     for index, (x, y) in enumerate(corners):
@@ -125,10 +127,12 @@ def test_sketch_panel_in_a_real_browser(scene, tmp_path):
     sketches = load_sketch_set(out)
     assert len(sketches.views) == 2
     for view in sketches.views:
-        # The clicked square: about 10% x 10% of the view, around its centre.
+        # The clicked square: 10% x 10% of the view, where it was clicked.
         fraction = view.mask.mean()
         assert 0.003 < fraction < 0.03, fraction
         rows, cols = np.nonzero(view.mask)
+        centre = (cols.mean() + 0.5) / view.mask.shape[1], (rows.mean() + 0.5) / view.mask.shape[0]
+        assert abs(centre[0] - 0.50) < 0.02 and abs(centre[1] - 0.45) < 0.02, f"clicked around (0.50, 0.45), got {centre}"
         height, width = rows.ptp() + 1, cols.ptp() + 1
         assert 0.5 < height / width < 2 and view.mask.sum() > 0.8 * height * width, "the clicked square, filled"
     assert (ARTIFACTS / "sked_sketch_panel.png").stat().st_size > 10_000

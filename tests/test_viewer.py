@@ -63,7 +63,14 @@ def test_panel_draws_two_views_and_saves_the_set(scene, sketch_viewer, monkeypat
         for x, y in [(xs.min(), ys.min()), (xs.max() + 1, ys.min()), (xs.max() + 1, ys.max() + 1), (xs.min(), ys.max() + 1)]:
             panel.click(x / 48, y / 48)
         panel.close_scribble()
+        assert panel.pending_handle is not None, "the view being drawn is shown"
         panel.add_view()
+        assert panel.pending_handle is None, "an added view leaves no stale pending frustum"
+        index = len(panel.session.views) - 1
+        shown = panel.session.view_image(index)  # what the saved view's frustum shows
+        mask = panel.session.views[index].mask
+        assert np.array_equal(shown[~mask], canvas[~mask]) and (shown[mask][:, 0] > canvas[mask][:, 0]).all()
+    assert len(panel.handles) == 3, "two view frusta and the edit box"
     assert "Edit box" in panel.last_message and not panel.save_button.disabled
     path = panel.save()
     saved = load_sketch_set(path.parent)
