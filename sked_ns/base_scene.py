@@ -11,6 +11,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Dict, Optional
 
+import numpy as np
 import torch
 import yaml
 from torch import Tensor
@@ -120,3 +121,34 @@ def read_model_state(checkpoint: Path) -> Dict[str, Tensor]:
 def uses_tcnn(state: Dict[str, Tensor], prefix: str = "field.") -> bool:
     """tiny-cuda-nn modules store one flat `params` tensor; the torch ones named layers."""
     return any(key.startswith(prefix) and key.endswith(".params") for key in state)
+
+
+def dataparser_name(dataparser_config) -> str:
+    """The `ns-train` subcommand of a dataparser config (e.g. instant-ngp-data), or its class name."""
+    from nerfstudio.configs.dataparser_configs import all_dataparsers
+
+    for name, config in all_dataparsers.items():
+        if type(config) is type(dataparser_config):
+            return name
+    return type(dataparser_config).__name__
+
+
+def check_same_frame(base: BaseScene, here: "DataparserTransform") -> None:
+    """The edit's --data and dataparser must put the scene where the base's field has it: another
+    orientation, centring or scale would query the base at the wrong points, silently."""
+    from sked_ns.sketches import DataparserTransform
+
+    path = base.run_dir / "dataparser_transforms.json"
+    if not path.exists():  # nerfstudio writes it for every run; without it there is nothing to compare
+        return
+    saved = DataparserTransform.from_json(path)
+    if np.allclose(saved.transform, here.transform, atol=1e-5) and abs(saved.scale - here.scale) <= 1e-5 * saved.scale:
+        return
+    dataparser = base.config.pipeline.datamanager.dataparser
+    raise ValueError(
+        f"{path}: the base was trained in another frame than --data and its dataparser give here (base scale "
+        f"{saved.scale:.6g}, translation {np.round(saved.transform[:, 3], 4).tolist()}; here scale {here.scale:.6g}, "
+        f"translation {np.round(here.transform[:, 3], 4).tolist()}). Pass the base's dataparser and its settings: "
+        f"`{dataparser_name(dataparser)} --data {getattr(dataparser, 'data', '<the base data>')}` "
+        f"(see {base.run_dir / 'config.yml'}, pipeline.datamanager.dataparser)."
+    )

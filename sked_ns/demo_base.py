@@ -17,7 +17,6 @@ import torch
 from nerfstudio.cameras.camera_optimizers import CameraOptimizerConfig
 from nerfstudio.configs.method_configs import method_configs
 from nerfstudio.data.datamanagers.base_datamanager import VanillaDataManagerConfig
-from nerfstudio.data.dataparsers.nerfstudio_dataparser import NerfstudioDataParserConfig
 from nerfstudio.field_components.field_heads import FieldHeadNames
 from nerfstudio.cameras.rays import Frustums, RaySamples
 
@@ -50,10 +49,11 @@ def _cpu_run_config(method: str, data: Path, output_dir: Path, experiment: str):
     config.timestamp = "base"
     config.machine.device_type = "cpu"
     config.vis = "tensorboard"
-    # The plain datamanager: nerfacto's parallel one spawns worker processes, pointless here.
-    config.pipeline.datamanager = VanillaDataManagerConfig(
-        data=data, dataparser=NerfstudioDataParserConfig(data=data), train_num_rays_per_batch=1024
-    )
+    # The method's own dataparser (instant-ngp-bounded: instant-ngp-data) and the plain
+    # datamanager: nerfacto's parallel one spawns worker processes, pointless here.
+    dataparser = copy.deepcopy(config.pipeline.datamanager.dataparser)
+    dataparser.data = data
+    config.pipeline.datamanager = VanillaDataManagerConfig(data=data, dataparser=dataparser, train_num_rays_per_batch=1024)
     return config
 
 

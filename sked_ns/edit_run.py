@@ -13,11 +13,15 @@ from sked_ns.sked_trainer import SkedTrainerConfig
 def edit_config(
     base: Path, data: Path, sketches: Path, output_dir: Path, *, prompt: Optional[str] = None,
     guidance: str = "reference", iterations: int = 100, guidance_resolution: int = 32,
-    silhouette_resolution: int = 24, device: str = "cpu", steps_per_save: int = 50,
+    silhouette_resolution: int = 24, device: str = "cpu", steps_per_save: int = 50, dataparser=None,
 ) -> SkedTrainerConfig:
-    """The `ns-train sked --load-dir BASE --data DATA --sketches SKETCHES ...` config."""
-    from nerfstudio.data.dataparsers.nerfstudio_dataparser import NerfstudioDataParserConfig
+    """The `ns-train sked --load-dir BASE --sketches SKETCHES ... <dataparser> --data DATA` config;
+    the dataparser defaults to the base's own (as the user types it: the same subcommand and settings)."""
+    from sked_ns.base_scene import resolve_base
 
+    if dataparser is None:
+        dataparser = copy.deepcopy(resolve_base(Path(base)).config.pipeline.datamanager.dataparser)
+    dataparser.data = Path(data)
     config: SkedTrainerConfig = copy.deepcopy(sked_method.config)
     config.output_dir = Path(output_dir)
     config.experiment_name = "edit"
@@ -25,7 +29,7 @@ def edit_config(
     config.sketches = Path(sketches)
     config.data = Path(data)
     config.pipeline.datamanager.data = Path(data)
-    config.pipeline.datamanager.dataparser = NerfstudioDataParserConfig(data=Path(data))
+    config.pipeline.datamanager.dataparser = dataparser
     config.machine.device_type = device
     config.mixed_precision = device == "cuda"
     config.vis = "tensorboard"

@@ -3,11 +3,13 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Literal, Optional, Type
 
 from nerfstudio.pipelines.base_pipeline import Pipeline, VanillaPipeline, VanillaPipelineConfig
 from torch.cuda.amp.grad_scaler import GradScaler
 
+from sked_ns.base_scene import check_same_frame, resolve_base
 from sked_ns.sked_datamanager import SkedDataManagerConfig
 from sked_ns.sked_model import SkedModelConfig
 from sked_ns.sketches import load_sketch_set
@@ -49,6 +51,8 @@ class SkedPipeline(VanillaPipeline):
             grad_scaler=grad_scaler,
             sketch_set=sketch_set,
         )
+        if config.model.base_checkpoint is not None:  # after the model's own checks (image count is clearer)
+            check_same_frame(resolve_base(Path(config.model.base_checkpoint)), self.datamanager.dataparser_transform)
         self.model.to(device)
         self.datamanager.attach_sketches(
             sketch_set, self.model.edit_box, config.model.silhouette_resolution, config.model.guidance_resolution

@@ -159,6 +159,19 @@ def test_data_that_does_not_match_the_base(scene, tmp_path):
         config.pipeline.setup(device="cpu", test_mode="val")
 
 
+def test_data_through_another_dataparser_is_refused(scene, tmp_path):
+    """Same images, but instant-ngp-data's frame (no orientation or centring): the base would be
+    queried at the wrong points, so the edit refuses and says which dataparser the base used."""
+    from nerfstudio.data.dataparsers.instant_ngp_dataparser import InstantNGPDataParserConfig
+
+    config = edit_config(scene["base"], scene["data"], scene["sketches"], tmp_path / "out", iterations=2,
+                         dataparser=InstantNGPDataParserConfig())
+    resolve_edit(config)
+    with pytest.raises(ValueError, match=r"dataparser_transforms.json: the base was trained in another frame.*"
+                                         r"`nerfstudio-data --data"):
+        config.pipeline.setup(device="cpu", test_mode="val")
+
+
 def test_tcnn_base_without_tcnn_is_explained(scene, tmp_path):
     run = tmp_path / "run"
     shutil.copytree(scene["base"], run)

@@ -143,14 +143,22 @@ def test_ns_train_sked_on_an_ngp_run_folder(ngp_scene, tmp_path):
     assert list((config_path.parent / "nerfstudio_models").glob("step-*.ckpt"))
 
 
-def test_instant_ngp_bounded_base_edits(ngp_scene, tmp_path):
-    """instant-ngp-bounded: no scene contraction, one grid level, black background, alpha_thre 0."""
+@pytest.fixture(scope="module")
+def bounded_base(ngp_scene, tmp_path_factory):
+    """An instant-ngp-bounded base trained, as that method does, through the instant-ngp-data dataparser."""
     from sked_ns.demo_base import build_demo_base
 
-    base = build_demo_base(ngp_scene["data"], tmp_path / "base", steps=300, points_per_step=4096,
+    return build_demo_base(ngp_scene["data"], tmp_path_factory.mktemp("bounded"), steps=300, points_per_step=4096,
                            method="instant-ngp-bounded")
-    config = edit_config(base, ngp_scene["data"], ngp_scene["sketches"], tmp_path / "edits", iterations=20,
+
+
+def test_instant_ngp_bounded_base_edits(ngp_scene, bounded_base, tmp_path):
+    """instant-ngp-bounded: no scene contraction, one grid level, black background, alpha_thre 0."""
+    from nerfstudio.data.dataparsers.instant_ngp_dataparser import InstantNGPDataParserConfig
+
+    config = edit_config(bounded_base, ngp_scene["data"], ngp_scene["sketches"], tmp_path / "edits", iterations=20,
                          guidance_resolution=16, silhouette_resolution=16)
+    assert isinstance(config.pipeline.datamanager.dataparser, InstantNGPDataParserConfig), "the base's dataparser"
     trainer = run_edit(config)
     model = trainer.pipeline.model
     assert isinstance(model, SkedNGPModel)
@@ -159,4 +167,31 @@ def test_instant_ngp_bounded_base_edits(ngp_scene, tmp_path):
     assert trainer.skipped_steps == 0
     assert all(torch.isfinite(p).all() for p in model.parameters())
     view = model.sketch_set.views[0]
+    # The sketch views, mapped through instant-ngp-data's frame (scale only), see the base's object.
     assert render_at(model, view, 24)["accumulation"].max() > 0.5, "the bounded base renders its object"
+
+
+def test_ns_train_sked_on_a_bounded_run_with_instant_ngp_data(ngp_scene, bounded_base, tmp_path):
+    """What an instant-ngp-bounded user types: the base's dataparser subcommand."""
+    import shutil
+    import subprocess
+    import sys
+
+    ns_train = shutil.which("ns-train", path=str(Path(sys.executable).parent)) or shutil.which("ns-train")
+    common = [
+        ns_train, "sked", "--load-dir", str(bounded_base), "--sketches", str(ngp_scene["sketches"]),
+        "--pipeline.model.guidance", "reference", "--pipeline.model.guidance-resolution", "16",
+        "--pipeline.model.silhouette-resolution", "16", "--max-num-iterations", "2", "--steps-per-save", "2",
+        "--machine.device-type", "cpu", "--mixed-precision", "False", "--vis", "tensorboard",
+    ]
+    result = subprocess.run(common + ["--output-dir", str(tmp_path / "ok"), "instant-ngp-data", "--data",
+                                      str(ngp_scene["data"])], capture_output=True, text=True, timeout=600)
+    assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
+    (config_path,) = (tmp_path / "ok").rglob("config.yml")
+    assert "InstantNGPDataParserConfig" in config_path.read_text()
+    # nerfstudio-data orients, centres and scales the same images differently: refused, with what to type.
+    wrong = subprocess.run(common + ["--output-dir", str(tmp_path / "wrong"), "nerfstudio-data", "--data",
+                                     str(ngp_scene["data"])], capture_output=True, text=True, timeout=600)
+    assert wrong.returncode != 0
+    assert "dataparser_transforms.json" in wrong.stderr and "instant-ngp-data --data" in wrong.stderr, wrong.stderr[-3000:]
+    assert not list((tmp_path / "wrong").rglob("step-*.ckpt")), "nothing trained in the wrong frame"
