@@ -16,6 +16,8 @@ import torch
 import yaml
 from torch import Tensor
 
+from sked_ns.sketches import DataparserTransform
+
 SUPPORTED_METHODS = {
     "nerfacto": "nerfacto",
     "nerfacto-big": "nerfacto",
@@ -133,11 +135,9 @@ def dataparser_name(dataparser_config) -> str:
     return type(dataparser_config).__name__
 
 
-def check_same_frame(base: BaseScene, here: "DataparserTransform") -> None:
+def check_same_frame(base: BaseScene, here: DataparserTransform) -> None:
     """The edit's --data and dataparser must put the scene where the base's field has it: another
     orientation, centring or scale would query the base at the wrong points, silently."""
-    from sked_ns.sketches import DataparserTransform
-
     path = base.run_dir / "dataparser_transforms.json"
     if not path.exists():  # nerfstudio writes it for every run; without it there is nothing to compare
         return

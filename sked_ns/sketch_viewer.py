@@ -232,7 +232,7 @@ def show_sketch_views(server, views, edit_box=None, prefix: str = "/sked", image
     handles = []
     for index, view in enumerate(views):
         image = images[index] if images is not None else np.repeat(view.mask[..., None], 3, axis=-1).astype(np.float64)
-        camera = PinholeCamera(view.camera_to_world, view.fl_x, view.fl_y, view.cx, view.cy, view.width, view.height)
+        camera = PinholeCamera.from_view(view)
         handles.append(add_frustum(server, f"{prefix}/view_{index:02d}", camera, image, (220, 30, 30)))
     if edit_box is not None:
         corners = np.array([[x, y, z] for x in (0, 1) for y in (0, 1) for z in (0, 1)], dtype=np.float64)

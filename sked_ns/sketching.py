@@ -49,6 +49,11 @@ class PinholeCamera:
     height: int
 
     @classmethod
+    def from_view(cls, view: SketchView) -> "PinholeCamera":
+        """The camera of a sketch view (in whatever frame the view is)."""
+        return cls(view.camera_to_world, view.fl_x, view.fl_y, view.cx, view.cy, view.width, view.height)
+
+    @classmethod
     def from_nerfstudio(cls, cameras) -> "PinholeCamera":
         """The first camera of a nerfstudio `Cameras`."""
         camera = cameras[0] if cameras.shape else cameras

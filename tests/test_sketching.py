@@ -31,7 +31,7 @@ def _render(camera: PinholeCamera) -> np.ndarray:
 def _hat_views(size=64):
     """The hat's sketch views, in the model frame, as cameras + their true masks."""
     for view in demo_scene.SCENES["hat"].sketch_set(size=size).in_model_frame(TRANSFORM).views:
-        camera = PinholeCamera(view.camera_to_world, view.fl_x, view.fl_y, view.cx, view.cy, view.width, view.height)
+        camera = PinholeCamera.from_view(view)
         yield camera, view.mask
 
 
