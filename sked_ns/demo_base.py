@@ -12,6 +12,8 @@ from __future__ import annotations
 import copy
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Optional
+
 import numpy as np
 import torch
 from nerfstudio.cameras.camera_optimizers import CameraOptimizerConfig
@@ -41,13 +43,13 @@ class TinyNerfacto:
     proposal_samples: tuple = (64, 32)
 
 
-def _cpu_run_config(method: str, data: Path, output_dir: Path, experiment: str):
-    """`ns-train METHOD` for the demo data on the CPU, saved under output_dir/experiment/METHOD/base."""
+def _run_config(method: str, data: Path, output_dir: Path, experiment: str, device: str = "cpu"):
+    """`ns-train METHOD` for the demo data, saved under output_dir/experiment/METHOD/base."""
     config = copy.deepcopy(method_configs[method])
     config.output_dir = output_dir
     config.experiment_name = experiment
     config.timestamp = "base"
-    config.machine.device_type = "cpu"
+    config.machine.device_type = device.split(":")[0]
     config.vis = "tensorboard"
     # The method's own dataparser (instant-ngp-bounded: instant-ngp-data) and the plain
     # datamanager: nerfacto's parallel one spawns worker processes, pointless here.
@@ -57,14 +59,25 @@ def _cpu_run_config(method: str, data: Path, output_dir: Path, experiment: str):
     return config
 
 
-def nerfacto_config(data: Path, output_dir: Path, tiny: TinyNerfacto = TinyNerfacto()):
-    """`ns-train nerfacto` config for the demo data, shrunk to `tiny`, on the CPU."""
-    config = _cpu_run_config("nerfacto", data, output_dir, "demo-base")
+def tcnn_available() -> bool:
+    try:
+        import tinycudann  # noqa: F401
+    except (ImportError, OSError, EnvironmentError):
+        return False
+    return True
+
+
+def nerfacto_config(data: Path, output_dir: Path, tiny: Optional[TinyNerfacto] = TinyNerfacto(), device: str = "cpu"):
+    """`ns-train nerfacto` config for the demo data, shrunk to `tiny` (None: nerfacto's own size)."""
+    config = _run_config("nerfacto", data, output_dir, "demo-base", device)
     model = config.pipeline.model
-    model.implementation = "torch"
+    # tiny-cuda-nn where it is installed and usable (CUDA), as `ns-train nerfacto` would choose.
+    model.implementation = "tcnn" if device.startswith("cuda") and tcnn_available() else "torch"
     model.camera_optimizer = CameraOptimizerConfig(mode="off")
     model.background_color = "white"
     model.far_plane = 4.0  # an object scene: nothing lies beyond the cameras' far side
+    if tiny is None:
+        return config
     model.num_levels = tiny.num_levels
     model.log2_hashmap_size = tiny.log2_hashmap_size
     model.max_res = tiny.max_res
@@ -79,11 +92,15 @@ def nerfacto_config(data: Path, output_dir: Path, tiny: TinyNerfacto = TinyNerfa
     return config
 
 
-def ngp_config(data: Path, output_dir: Path, tiny: TinyNerfacto = TinyNerfacto(), method: str = "instant-ngp"):
-    """`ns-train instant-ngp(-bounded)` config for the demo data: a coarse grid and long steps for the CPU."""
-    config = _cpu_run_config(method, data, output_dir, "demo-base-ngp")
+def ngp_config(data: Path, output_dir: Path, tiny: Optional[TinyNerfacto] = TinyNerfacto(), method: str = "instant-ngp",
+               device: str = "cpu"):
+    """`ns-train instant-ngp(-bounded)` config for the demo data: a coarse grid and long steps for the CPU
+    (`tiny` None: the method's own grid, step size and hash grid)."""
+    config = _run_config(method, data, output_dir, "demo-base-ngp", device)
     model = config.pipeline.model
     model.background_color = "white"
+    if tiny is None:
+        return config
     model.log2_hashmap_size = tiny.log2_hashmap_size
     model.max_res = tiny.max_res
     model.grid_resolution = 32
@@ -99,19 +116,21 @@ def soft_density(sdf_values: torch.Tensor, width: float) -> torch.Tensor:
 
 def build_demo_base(
     data: Path, output_dir: Path, steps: int = 300, points_per_step: int = 8192, seed: int = 0,
-    sdf=demo_scene.sphere_sdf, tiny: TinyNerfacto = TinyNerfacto(), method: str = "nerfacto",
+    sdf=demo_scene.sphere_sdf, tiny: Optional[TinyNerfacto] = TinyNerfacto(), method: str = "nerfacto",
+    device: str = "cpu",
 ) -> Path:
-    """Fit a tiny nerfacto or instant-ngp to the analytic scene; returns the run folder (with config.yml)."""
+    """Fit a nerfacto or instant-ngp (tiny, or None: the method's own size) to the analytic scene on
+    `device`; returns the run folder (with config.yml)."""
     torch.manual_seed(seed)
     if method == "nerfacto":
-        config = nerfacto_config(Path(data), Path(output_dir), tiny)
+        config = nerfacto_config(Path(data), Path(output_dir), tiny, device)
     else:
-        config = ngp_config(Path(data), Path(output_dir), tiny, method)
+        config = ngp_config(Path(data), Path(output_dir), tiny, method, device)
     with _without_lpips():
-        pipeline = config.pipeline.setup(device="cpu", test_mode="val")
+        pipeline = config.pipeline.setup(device=device, test_mode="val")
     outputs = pipeline.datamanager.train_dataparser_outputs
     transform = DataparserTransform(outputs.dataparser_transform.numpy().astype(np.float64), float(outputs.dataparser_scale))
-    centre = transform.points_to_model(torch.zeros(3))  # the object's centre (data origin) in the model frame
+    centre = transform.points_to_model(torch.zeros(3, device=device))  # the object's centre (data origin) in the model frame
 
     model = pipeline.model
     proposals = list(getattr(model, "proposal_networks", []))
@@ -122,14 +141,14 @@ def build_demo_base(
     radius = demo_scene.SPHERE_RADIUS * transform.scale * 1.6
     for _ in range(steps):
         # Points near the object, in the scene box, and out to infinity (nerfacto's contracted space).
-        near = centre + (torch.rand(points_per_step // 2, 3) * 2 - 1) * radius
-        anywhere = torch.rand(points_per_step // 4, 3) * 2 - 1
-        positions = torch.cat([near, anywhere, _uncontract(torch.rand(points_per_step // 4, 3) * 4 - 2)])
-        data_positions = transform.points_to_data(positions)
+        near = centre + (torch.rand(points_per_step // 2, 3, device=device) * 2 - 1) * radius
+        anywhere = torch.rand(points_per_step // 4, 3, device=device) * 2 - 1
+        positions = torch.cat([near, anywhere, _uncontract(torch.rand(points_per_step // 4, 3, device=device) * 4 - 2)])
+        data_positions = transform.points_to_data(positions).cpu()  # the analytic scene is evaluated on the CPU
         with torch.no_grad():
             # SDF in model units; a 0.003-wide soft surface: about one cell of the finest grid.
-            target_density = soft_density(sdf(data_positions) * transform.scale, 0.003)
-            target_rgb = demo_scene.surface_colour(data_positions, sdf)
+            target_density = soft_density(sdf(data_positions) * transform.scale, 0.003).to(device)
+            target_rgb = demo_scene.surface_colour(data_positions, sdf).to(device)
         field_outputs = model.field(_point_samples(positions))
         # Fit alpha over a 0.05 step: bounded, so the huge inside densities do not dominate.
         target_alpha = 1 - torch.exp(-target_density * 0.05)
@@ -180,7 +199,8 @@ def _point_samples(positions: torch.Tensor) -> RaySamples:
     directions[:, 2] = 1
     frustums = Frustums(
         origins=positions[:, None], directions=directions[:, None],
-        starts=torch.zeros(len(positions), 1, 1), ends=torch.zeros(len(positions), 1, 1),
-        pixel_area=torch.ones(len(positions), 1, 1),
+        starts=positions.new_zeros(len(positions), 1, 1), ends=positions.new_zeros(len(positions), 1, 1),
+        pixel_area=positions.new_ones(len(positions), 1, 1),
     )
-    return RaySamples(frustums=frustums, camera_indices=torch.zeros(len(positions), 1, 1, dtype=torch.long))
+    return RaySamples(frustums=frustums, camera_indices=torch.zeros(len(positions), 1, 1, dtype=torch.long,
+                                                                    device=positions.device))

@@ -42,8 +42,10 @@ class PortableOccGridEstimator(nerfacc.OccGridEstimator):
             fars = torch.minimum(fars, t_max)
         if stratified:
             nears = nears + torch.rand_like(nears) * render_step_size
+        # The grid follows the rays: a CUDA grid can be checked against CPU rays.
         ray_indices, t_starts, t_ends = march_grid(
-            self.binaries, self.aabbs, rays_o, rays_d, nears, fars, render_step_size, cone_angle
+            self.binaries.to(rays_o.device), self.aabbs.to(rays_o.device), rays_o, rays_d, nears, fars,
+            render_step_size, cone_angle,
         )
         if sigma_fn is not None and (alpha_thre > 0.0 or early_stop_eps > 0.0) and len(t_starts):
             alpha_thre = min(alpha_thre, self.occs.mean().item())

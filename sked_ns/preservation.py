@@ -137,9 +137,11 @@ class SketchDistanceField(nn.Module):
         points = points.to(self.projection_rows)
         buffers = (self.projection_rows, self.distance_maps, self.offsets, self.sizes, mean_scale)
         try:
-            if points.shape[0] <= _CHUNK or points.is_cuda:
-                return self._lookup(points, *buffers)
-            return torch.cat([self._lookup(chunk, *buffers) for chunk in points.split(_CHUNK)])
+            # Pixel coordinates need float32: under mixed precision fp16/bf16 would move them by pixels.
+            with torch.autocast(device_type=points.device.type, enabled=False):
+                if points.shape[0] <= _CHUNK or points.is_cuda:
+                    return self._lookup(points, *buffers)
+                return torch.cat([self._lookup(chunk, *buffers) for chunk in points.split(_CHUNK)])
         except Exception as error:
             if self._lookup is _sketch_distance:
                 raise

@@ -125,10 +125,8 @@ class SkedTrainer(Trainer):
             self._skip(step, [name for name, value in loss_dict.items() if not torch.isfinite(value)])
             return loss.detach(), loss_dict, metrics_dict
         self.grad_scaler.scale(loss).backward()
-        gradients_finite = all(
-            torch.isfinite(p.grad).all() for p in self.pipeline.model.parameters() if p.grad is not None
-        )
-        if not gradients_finite and not self.grad_scaler.is_enabled():
+        # The grad scaler skips non-finite steps itself; without it, check every gradient with one sync.
+        if not self.grad_scaler.is_enabled() and not _all_finite(self.pipeline.model.parameters()):
             self.optimizers.zero_grad_all()
             self._skip(step, ["gradients"])
             return loss.detach(), loss_dict, metrics_dict
@@ -151,3 +149,8 @@ class SkedTrainer(Trainer):
             CONSOLE.print(f"[red]step {step}: not saving a checkpoint with non-finite weights ({bad[:3]})[/red]")
             return
         super().save_checkpoint(step)
+
+
+def _all_finite(parameters) -> bool:
+    gradients = [p.grad for p in parameters if p.grad is not None]
+    return not gradients or bool(torch.stack([torch.isfinite(g).all() for g in gradients]).all())

@@ -53,3 +53,22 @@ def test_sds_iteration_smoke_run_with_a_tiny_model(tmp_path):
     assert {"render", "vae_encode", "unet", "losses_and_backward_and_step"} <= set(split)
     assert all(value > 0 for value in split.values()) and data["iteration_ms"] > 0
     assert "random weights" in data["diffusion_model"]
+
+
+def test_gpu_check_smoke_run_on_the_cpu(tmp_path):
+    """The CUDA check's CPU twin: every phase runs and the issue's figures are in the JSON."""
+    output = tmp_path / "gpu_check.json"
+    result = subprocess.run([sys.executable, str(BENCHMARKS / "gpu_check.py"), "--device", "cpu", "--size", "tiny",
+                             "--output", str(output)], capture_output=True, text=True, timeout=900)
+    assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
+    data = json.loads(output.read_text())
+    assert data["failed_phases"] == []
+    for edit in ("nerfacto", "ngp"):
+        entry = data[edit]
+        assert entry["iterations"] == 3 and entry["ms_per_iteration"] > 0 and entry["ratio_to_sd_floor"] > 0
+        assert entry["extrapolated_10k_seconds"] > 10_000 * entry["ms_per_iteration"] / 1000
+    assert data["ngp"]["model"] == "SkedNGPModel" and data["nerfacto"]["model"] == "SkedModel"
+    assert data["marcher_check"]["relative_difference"] == 0.0  # the same torch marcher on both sides here
+    assert data["ms_per_iteration"] == data["nerfacto"]["ms_per_iteration"] and data["sd_floor_ms"] > 0
+    assert "RANDOM weights" in data["description"]
+    assert output.with_name("gpu_check_profile.txt").stat().st_size > 1000

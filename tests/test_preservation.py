@@ -122,3 +122,19 @@ def test_compiled_lookup_equals_eager(rng):
     assert torch.equal(torch.isinf(eager), torch.isinf(compiled))
     finite = torch.isfinite(eager)
     torch.testing.assert_close(compiled[finite], eager[finite], rtol=1e-6, atol=1e-6)
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_lookup_is_float32_under_mixed_precision(rng, device):
+    """Training runs under autocast; the projection must not drop to half precision (pixels would move)."""
+    views = [random_view(rng, 200, 160, f"v{j}") for j in range(2)]
+    field = SketchDistanceField(views).to(device)
+    points = torch.tensor(_points(rng, 5000), dtype=torch.float32, device=device)
+    exact = field.distance(points)
+    dtype = torch.float16 if device == "cuda" else torch.bfloat16
+    with torch.autocast(device_type=device, dtype=dtype):
+        mixed = field.distance(points)
+    assert mixed.dtype == torch.float32
+    assert torch.equal(torch.isinf(exact), torch.isinf(mixed))
+    finite = torch.isfinite(exact)
+    torch.testing.assert_close(mixed[finite], exact[finite], rtol=1e-6, atol=1e-6)

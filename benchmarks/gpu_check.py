@@ -1,0 +1,506 @@
+"""The whole CUDA path in one command: bases, SDS edits (nerfacto and instant-ngp), the bare SD step,
+the CUDA marcher against the torch one, and the CUDA-only tests.
+
+    python benchmarks/gpu_check.py                            # on a GPU: full-size SD v1.x, paper's settings
+    python benchmarks/gpu_check.py --device cpu --size tiny   # a smoke run anywhere (a test runs it)
+
+a. Fits a nerfacto and an instant-ngp base of the demo scene on the device (the methods' own
+   architectures at --size full, the tests' tiny ones at --size tiny).
+b. Writes SD v1.x's architecture with RANDOM weights to a local folder (honest timings,
+   meaningless images) and runs a real `ns-train sked --prompt ...` edit of each base, parsed
+   by nerfstudio's own command line, with the paper's settings (128 px renders upsampled to
+   512, CFG 100, fp16 and compiled UNet / VAE encoder on CUDA). The instant-ngp edit marches
+   nerfacc's CUDA occupancy grid.
+c. In the same process, times the bare compiled SD step (VAE encode forward + backward and the
+   batch-2 UNet) that every SDS iteration must pay: the floor an edit step is compared with.
+d. Checks nerfacc's CUDA marcher against the torch marcher on the edit's own grid, and runs
+   the tests that only run on CUDA.
+e. Writes benchmarks/results/gpu_check.json: per edit the setup, compile and per-iteration
+   times, the 10,000-iteration extrapolation (compile, checkpoints and evaluation images
+   included), the ratio to the SD floor and the peak GPU memory; and a torch-profiler table
+   of the nerfacto edit's most expensive operations beside it (gpu_check_profile.txt).
+
+Every phase is timed and guarded: a failing phase is recorded with its error and the rest run.
+"""
+
+from __future__ import annotations
+
+import argparse
+import gc
+import json
+import platform
+import subprocess
+import sys
+import tempfile
+import time
+import traceback
+from contextlib import contextmanager, nullcontext
+from pathlib import Path
+from typing import Callable, Dict, List, Optional
+
+import numpy as np
+import torch
+
+BENCHMARKS = Path(__file__).resolve().parent
+RESULTS = BENCHMARKS / "results"
+sys.path.insert(0, str(BENCHMARKS))
+
+PAPER_ITERATIONS = 10_000
+PROMPT = "a red chef hat"
+
+
+class Check:
+    """The results dict, written after every phase, and the phases' timing and guarding."""
+
+    def __init__(self, output: Path, budget_s: float) -> None:
+        self.output, self.deadline, self.result = output, time.perf_counter() + budget_s, {"phases": {}}
+        output.parent.mkdir(parents=True, exist_ok=True)
+
+    def left(self) -> float:
+        return self.deadline - time.perf_counter()
+
+    def phase(self, name: str, function: Callable[[], Optional[dict]], needs_s: float = 0.0):
+        if self.left() < needs_s:
+            self.result["phases"][name] = {"status": f"skipped: under {needs_s:.0f} s of the time budget left"}
+            print(f"[{name}] skipped (time budget)", flush=True)
+            self.write()
+            return None
+        print(f"[{name}] ...", flush=True)
+        start = time.perf_counter()
+        try:
+            value = function()
+            status = "ok"
+        except Exception as error:  # recorded, so one broken phase does not hide the others
+            value, status = None, f"failed: {type(error).__name__}: {error}"
+            traceback.print_exc()
+            self.result["phases"].setdefault(name, {})["traceback"] = traceback.format_exc()[-4000:]
+        self.result["phases"].setdefault(name, {}).update(status=status, seconds=round(time.perf_counter() - start, 2))
+        print(f"[{name}] {status} ({time.perf_counter() - start:.1f} s)", flush=True)
+        self.write()
+        return value
+
+    def write(self) -> None:
+        self.output.write_text(json.dumps(self.result, indent=2, default=str))
+
+
+def sync(device: str) -> None:
+    if device == "cuda":
+        torch.cuda.synchronize()
+
+
+def reset_peak(device: str) -> None:
+    if device == "cuda":
+        gc.collect()
+        torch.cuda.empty_cache()
+        torch.cuda.reset_peak_memory_stats()
+
+
+def peak_gb(device: str) -> Optional[float]:
+    return torch.cuda.max_memory_allocated() / 2**30 if device == "cuda" else None
+
+
+def ns_train_sked(arguments: List[str]):
+    """`ns-train sked ARGUMENTS` parsed by nerfstudio's own command line, prepared as its `main` does."""
+    import tyro
+    from nerfstudio.configs.method_configs import AnnotatedBaseConfigUnion
+
+    config = tyro.cli(AnnotatedBaseConfigUnion, args=["sked", *arguments])
+    if config.data:
+        config.pipeline.datamanager.data = config.data
+    if config.prompt:
+        config.pipeline.model.prompt = config.prompt
+    config.set_timestamp()
+    config.save_config()
+    return config
+
+
+class StepClock:
+    """Wall time of every training iteration, callbacks and logging included (entry to next entry)."""
+
+    def __init__(self, trainer, device: str) -> None:
+        self.device, self.entries = device, []
+        original = trainer.train_iteration
+
+        def timed(step: int):
+            sync(device)
+            self.entries.append(time.perf_counter())
+            return original(step)
+
+        trainer.train_iteration = timed
+
+    def close(self) -> None:
+        sync(self.device)
+        self.entries.append(time.perf_counter())
+
+    @property
+    def durations(self) -> np.ndarray:
+        return np.diff(np.array(self.entries))
+
+
+def edit_arguments(base: Path, work: Path, sd: Path, name: str, iterations: int, size: str, device: str) -> List[str]:
+    """The user's command line: the paper's settings from the preset; small renders only at --size tiny."""
+    arguments = [
+        "--load-dir", str(base), "--sketches", str(work / "sketches"), "--prompt", PROMPT,
+        "--pipeline.model.sds.model", str(sd), "--max-num-iterations", str(iterations),
+        "--output-dir", str(work / "edits"), "--experiment-name", name, "--vis", "tensorboard",
+        "--machine.device-type", device, "--steps-per-save", str(10**9),
+    ]
+    if size == "tiny":
+        arguments += ["--pipeline.model.guidance-resolution", "16", "--pipeline.model.silhouette-resolution", "16",
+                      "--pipeline.model.sds.image-size", "32"]
+    return arguments + ["nerfstudio-data", "--data", str(work / "data")]
+
+
+def run_edit(check: Check, key: str, base: Path, work: Path, sd: Path, args) -> Optional[object]:
+    """One `ns-train sked` edit, timed; returns the trainer (for the SD floor and the marcher check)."""
+    device = args.device
+    entry: Dict = {}
+    check.result[key] = entry
+    reset_peak(device)
+    config = ns_train_sked(edit_arguments(base, work, sd, key, args.iterations, args.size, device))
+    start = time.perf_counter()
+    trainer = config.setup(local_rank=0, world_size=1)
+    trainer.setup()
+    sync(device)
+    entry["setup_seconds"] = time.perf_counter() - start
+    start = time.perf_counter()
+    trainer.pipeline.prepare_guidance()  # loads SD from the folder, encodes the prompts
+    sync(device)
+    entry["load_diffusion_seconds"] = time.perf_counter() - start
+    clock = StepClock(trainer, device)
+    start = time.perf_counter()
+    trainer.train()
+    clock.close()
+    entry["train_seconds"] = time.perf_counter() - start
+    durations = clock.durations
+    steady = durations[min(args.warmup, len(durations) - 1):]
+    ms = 1000 * float(np.mean(steady))
+    entry.update(
+        iterations=len(durations),
+        first_iteration_seconds=float(durations[0]),
+        compile_seconds=max(0.0, float(durations[0]) - ms / 1000),
+        ms_per_iteration=ms,
+        ms_per_iteration_median=1000 * float(np.median(steady)),
+        ms_per_iteration_p90=1000 * float(np.percentile(steady, 90)),
+        steady_iterations=len(steady),
+        peak_gpu_memory_gb=peak_gb(device),
+        peak_gpu_memory_reserved_gb=torch.cuda.max_memory_reserved() / 2**30 if device == "cuda" else None,
+    )
+    model = trainer.pipeline.model
+    entry["model"] = type(model).__name__
+    entry["sketch_lookup_compiled"] = model.sketch_field._lookup is not getattr(
+        sys.modules["sked_ns.preservation"], "_sketch_distance")
+    entry["guidance_dtype"] = str(getattr(model.guidance, "dtype", None))
+
+    # What a 10,000-iteration edit also pays: a checkpoint every steps_per_save, an eval image every
+    # steps_per_eval_image, at the preset's cadence (the timed run saved none).
+    sync(device)
+    start = time.perf_counter()
+    trainer.save_checkpoint(len(durations))
+    sync(device)
+    entry["checkpoint_seconds"] = time.perf_counter() - start
+    start = time.perf_counter()
+    trainer.pipeline.eval()
+    with torch.no_grad():
+        trainer.pipeline.get_eval_image_metrics_and_images(step=len(durations))
+    trainer.pipeline.train()
+    sync(device)
+    entry["eval_image_seconds"] = time.perf_counter() - start
+    saves = PAPER_ITERATIONS // max(sked_preset_cadence("steps_per_save"), 1)
+    evals = PAPER_ITERATIONS // max(sked_preset_cadence("steps_per_eval_image"), 1)
+    entry["extrapolated_10k_seconds"] = (
+        entry["setup_seconds"] + entry["load_diffusion_seconds"] + entry["first_iteration_seconds"]
+        + (PAPER_ITERATIONS - 1) * ms / 1000 + saves * entry["checkpoint_seconds"] + evals * entry["eval_image_seconds"]
+    )
+    return trainer
+
+
+def sked_preset_cadence(name: str) -> int:
+    from sked_ns.sked_config import sked_method
+
+    return int(getattr(sked_method.config, name))
+
+
+def sd_floor(check: Check, trainer, args) -> dict:
+    """The bare compiled SD step on a fixed input, as the edit calls it (same autocast, same shapes)."""
+    device = args.device
+    guidance = trainer.pipeline.model.guidance
+    resolution = trainer.pipeline.model.config.guidance_resolution
+    image = torch.rand(1, 3, resolution, resolution, device=device, requires_grad=True)
+    context = torch.stack([guidance.embeddings[""], guidance.embeddings["front"]])
+    autocast = (torch.autocast("cuda", dtype=torch.float16) if device == "cuda" and trainer.mixed_precision
+                else nullcontext())
+    times = []
+    for repeat in range(args.floor_repeats + 3):
+        sync(device)
+        start = time.perf_counter()
+        with autocast:
+            latents = guidance.encode(image)
+            t = torch.full((2,), 500, device=device)
+            with torch.no_grad():
+                guidance._unet_forward(torch.cat([latents.detach().to(guidance.dtype)] * 2), t,
+                                       encoder_hidden_states=context)
+        latents.sum().backward()
+        sync(device)
+        if repeat >= 3:
+            times.append(time.perf_counter() - start)
+    floor = 1000 * float(np.mean(times))
+    check.result["sd_floor_ms"] = floor
+    for key in ("nerfacto", "ngp"):
+        if isinstance(check.result.get(key), dict) and "ms_per_iteration" in check.result[key]:
+            check.result[key]["ratio_to_sd_floor"] = check.result[key]["ms_per_iteration"] / floor
+    return {"sd_floor_ms": floor}
+
+
+class StageTimer:
+    """Synchronised wall time per stage (costs a little: the split, not the iteration time)."""
+
+    def __init__(self, device: str) -> None:
+        self.device, self.totals = device, {}
+
+    @contextmanager
+    def stage(self, name: str):
+        sync(self.device)
+        start = time.perf_counter()
+        try:
+            yield
+        finally:
+            sync(self.device)
+            self.totals[name] = self.totals.get(name, 0.0) + time.perf_counter() - start
+
+    def wrap(self, owner, attribute: str, name: str) -> Callable[[], None]:
+        original = getattr(owner, attribute)
+
+        def timed(*a, **k):
+            with self.stage(name):
+                return original(*a, **k)
+
+        setattr(owner, attribute, timed)
+        return lambda: setattr(owner, attribute, original)
+
+
+def profile_steps(check: Check, trainer, args) -> dict:
+    """Where an iteration's time goes: a synchronised split, then torch.profiler's top operations."""
+    device = args.device
+    model, guidance = trainer.pipeline.model, trainer.pipeline.model.guidance
+    timer = StageTimer(device)
+    undo = [timer.wrap(model, "_render", "nerf_render (random + sketch views)"),
+            timer.wrap(model.base_field, "forward", "base_field (L_pres)"),
+            timer.wrap(guidance, "_encode", "vae_encode"),
+            timer.wrap(guidance, "_unet_forward", "unet")]
+    steps = range(10**6, 10**6 + args.profile_steps)
+    total = []
+    for step in steps:
+        sync(device)
+        start = time.perf_counter()
+        trainer.train_iteration(step)
+        sync(device)
+        total.append(time.perf_counter() - start)
+    for restore in undo:
+        restore()
+    split = {name: 1000 * value / len(steps) for name, value in timer.totals.items()}
+    split["rest (losses, backward, optimiser, overhead)"] = 1000 * float(np.mean(total)) - sum(split.values())
+    check.result["split_ms (synchronised)"] = split
+
+    activities = [torch.profiler.ProfilerActivity.CPU]
+    if device == "cuda":
+        activities.append(torch.profiler.ProfilerActivity.CUDA)
+    with torch.profiler.profile(activities=activities) as profiler:
+        for step in range(2 * 10**6, 2 * 10**6 + args.profile_steps):
+            trainer.train_iteration(step)
+        sync(device)
+    sort = "cuda_time_total" if device == "cuda" else "cpu_time_total"
+    table = profiler.key_averages().table(sort_by=sort, row_limit=40)
+    path = check.output.with_name(check.output.stem + "_profile.txt")
+    path.write_text(f"{args.profile_steps} iterations of the nerfacto edit, sorted by {sort}\n{table}\n")
+    check.result["profile_table"] = str(path)
+    return split
+
+
+def marcher_check(check: Check, trainer, args) -> dict:
+    """nerfacc's CUDA marcher against the torch marcher on the edit's own occupancy grid."""
+    from sked_ns.occupancy import march_grid
+
+    grid = trainer.pipeline.model.occupancy_grid
+    step = trainer.pipeline.model.config.render_step_size
+    generator = torch.Generator().manual_seed(0)
+    aabb = grid.aabbs[-1].cpu()
+    centre, half = (aabb[:3] + aabb[3:]) / 2, (aabb[3:] - aabb[:3]) / 2
+    targets = centre + (torch.rand(2048, 3, generator=generator) * 2 - 1) * half * 0.5
+    origins = centre + torch.nn.functional.normalize(torch.randn(2048, 3, generator=generator), dim=-1) * half.norm() * 1.5
+    directions = torch.nn.functional.normalize(targets - origins, dim=-1)
+    nears, fars = torch.zeros(2048), torch.full((2048,), 1e10)
+    reference = march_grid(grid.binaries.cpu(), grid.aabbs.cpu(), origins, directions, nears, fars, step, 0.0)
+    if args.device == "cuda":
+        fast = grid.sampling(origins.cuda(), directions.cuda(), render_step_size=step, near_plane=0.0, far_plane=1e10)
+        fast = [tensor.cpu() for tensor in fast]
+    else:
+        fast = grid.sampling(origins, directions, render_step_size=step, near_plane=0.0, far_plane=1e10)
+    counts_ref = torch.bincount(reference[0], minlength=2048)
+    counts_fast = torch.bincount(fast[0], minlength=2048)
+    result = {
+        "backend": "nerfacc CUDA" if args.device == "cuda" else "torch (no CUDA)",
+        "samples_torch": int(len(reference[0])), "samples_nerfacc": int(len(fast[0])),
+        "relative_difference": abs(len(fast[0]) - len(reference[0])) / max(len(reference[0]), 1),
+        "rays_with_equal_counts": float((counts_ref == counts_fast).float().mean()),
+        "rays_within_one_sample": float(((counts_ref - counts_fast).abs() <= 1).float().mean()),
+    }
+    check.result["marcher_check"] = result
+    if result["relative_difference"] > 0.02:
+        raise AssertionError(f"CUDA and torch marchers disagree: {result}")
+    return result
+
+
+def cuda_tests(check: Check) -> dict:
+    """The tests that only run on CUDA (skipped on the CPU CI)."""
+    tests = BENCHMARKS.parent / "tests"
+    command = [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-k", "cuda",
+               str(tests / "test_occupancy.py"), str(tests / "test_preservation.py")]
+    run = subprocess.run(command, capture_output=True, text=True, timeout=600, cwd=BENCHMARKS.parent)
+    summary = (run.stdout.strip().splitlines() or [""])[-1]
+    check.result["cuda_tests"] = {"returncode": run.returncode, "summary": summary, "tail": run.stdout[-3000:] + run.stderr[-2000:]}
+    if run.returncode != 0:
+        raise AssertionError(f"CUDA tests failed: {summary}")
+    return check.result["cuda_tests"]
+
+
+def environment(args) -> dict:
+    info = {"python": platform.python_version(), "torch": torch.__version__, "cuda": torch.version.cuda,
+            "device": torch.cuda.get_device_name() if args.device == "cuda" else f"{platform.machine()} CPU"}
+    try:
+        import nerfacc
+        import nerfstudio  # noqa: F401
+        from importlib.metadata import version
+
+        info["nerfstudio"] = version("nerfstudio")
+        info["nerfacc"] = nerfacc.__version__
+        try:
+            from nerfacc import csrc  # noqa: F401
+
+            info["nerfacc_kernels"] = "prebuilt extension (nerfacc.csrc)"
+        except ImportError:
+            info["nerfacc_kernels"] = "JIT-compiled on first use"
+    except Exception as error:  # reported, not fatal
+        info["import_error"] = repr(error)
+    return info
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu", choices=("cuda", "cpu"))
+    parser.add_argument("--size", choices=("full", "tiny"), default="full",
+                        help="full: SD v1.x and the methods' own field sizes; tiny: a smoke run")
+    parser.add_argument("--iterations", type=int, default=None, help="edit iterations timed (default 60 full, 3 tiny)")
+    parser.add_argument("--warmup", type=int, default=None, help="iterations left out of the steady state")
+    parser.add_argument("--base-steps", type=int, default=None, help="fitting steps of each base")
+    parser.add_argument("--floor-repeats", type=int, default=None)
+    parser.add_argument("--profile-steps", type=int, default=None)
+    parser.add_argument("--budget-s", type=float, default=540.0, help="skip later phases past this much time")
+    parser.add_argument("--skip", default="", help="comma-separated phases to skip (e.g. ngp,tests)")
+    parser.add_argument("--output", type=Path, default=RESULTS / "gpu_check.json")
+    parser.add_argument("--workdir", type=Path, default=None)
+    args = parser.parse_args()
+    full = args.size == "full"
+    args.iterations = args.iterations or (60 if full else 3)
+    args.warmup = args.warmup if args.warmup is not None else (10 if full else 1)
+    args.base_steps = args.base_steps or (300 if full else 30)
+    args.floor_repeats = args.floor_repeats or (20 if full else 2)
+    args.profile_steps = args.profile_steps or (5 if full else 1)
+    skip = set(filter(None, args.skip.split(",")))
+    if args.device == "cuda" and not torch.cuda.is_available():
+        parser.error("--device cuda, but torch sees no CUDA device here: pass --device cpu")
+
+    check = Check(args.output, args.budget_s)
+    check.result.update(
+        description="benchmarks/gpu_check.py: real `ns-train sked --prompt` edits with SD v1.x's "
+                    f"{'full' if full else 'tiny'} architecture and RANDOM weights (honest timings, meaningless images)",
+        settings={"size": args.size, "iterations_timed": args.iterations, "warmup": args.warmup,
+                  "guidance_resolution": 128 if full else 16, "sd_image_size": 512 if full else 32,
+                  "guidance_scale": 100, "precision": "fp16 autocast, compiled UNet and VAE encoder" if args.device == "cuda"
+                  else "fp32, eager", "prompt": PROMPT},
+        **environment(args),
+    )
+    check.write()
+
+    from sked_ns import demo_scene
+    from sked_ns.demo_base import TinyNerfacto, build_demo_base
+    from sked_ns.sketches import save_sketch_set
+    from sds_iteration import build_random_stable_diffusion
+
+    with tempfile.TemporaryDirectory() as scratch:
+        work = args.workdir or Path(scratch)
+        tiny = None if full else TinyNerfacto()
+        bases: Dict[str, Path] = {}
+
+        def make_bases():
+            demo_scene.write_demo_dataset(work / "data")
+            save_sketch_set(demo_scene.demo_sketch_set(), work / "sketches", overwrite=True)
+            timing = {}
+            for method in ("nerfacto", "instant-ngp"):
+                start = time.perf_counter()
+                bases[method] = build_demo_base(work / "data", work / "bases", steps=args.base_steps, tiny=tiny,
+                                                method=method, device=args.device)
+                sync(args.device)
+                timing[f"{method}_seconds"] = time.perf_counter() - start
+            check.result["bases"] = {**timing, "steps": args.base_steps,
+                                     "architecture": "the methods' defaults" if full else "tiny (tests)"}
+
+        check.phase("bases", make_bases)
+        sd_folder = work / f"sd-{args.size}"
+        check.phase("diffusion_model", lambda: {"folder": str(build_random_stable_diffusion(sd_folder, args.size))})
+
+        trainer = None
+        if "nerfacto" not in skip and "nerfacto" in bases:
+            trainer = check.phase("nerfacto_edit", lambda: run_edit(check, "nerfacto", bases["nerfacto"], work, sd_folder, args))
+        if trainer is not None:
+            check.phase("sd_floor", lambda: sd_floor(check, trainer, args), needs_s=30)
+            if "profile" not in skip:
+                check.phase("profile", lambda: profile_steps(check, trainer, args), needs_s=60)
+        del trainer
+        gc.collect()
+        if args.device == "cuda":
+            torch._dynamo.reset()  # the second edit compiles anew (inductor's disk cache may help, as for a user)
+        if "ngp" not in skip and "instant-ngp" in bases:
+            trainer = check.phase("ngp_edit", lambda: run_edit(check, "ngp", bases["instant-ngp"], work, sd_folder, args),
+                                  needs_s=90 if full else 0)
+            if trainer is not None:
+                check.phase("marcher_check", lambda: marcher_check(check, trainer, args))
+                if "ratio_to_sd_floor" not in check.result["ngp"] and "sd_floor_ms" in check.result:
+                    check.result["ngp"]["ratio_to_sd_floor"] = check.result["ngp"]["ms_per_iteration"] / check.result["sd_floor_ms"]
+            del trainer
+        if args.device == "cuda" and "tests" not in skip:
+            check.phase("cuda_tests", lambda: cuda_tests(check), needs_s=60)
+
+    # The headline figures (the nerfacto edit) at the top level, as README and issue 10 quote them.
+    headline = check.result.get("nerfacto", {})
+    for key in ("extrapolated_10k_seconds", "compile_seconds", "ms_per_iteration", "ratio_to_sd_floor", "peak_gpu_memory_gb"):
+        if key in headline:
+            check.result[key] = headline[key]
+    check.result["failed_phases"] = [name for name, phase in check.result["phases"].items() if phase["status"] != "ok"
+                                     and not phase["status"].startswith("skipped")]
+    check.write()
+    print(summary_table(check.result))
+    print(f"wrote {args.output}")
+    if check.result["failed_phases"]:
+        sys.exit(1)
+
+
+def summary_table(result: dict) -> str:
+    rows = ["| edit | setup s | compile s | ms / iteration | x SD floor | peak GPU GB | 10k iterations, min |",
+            "|---|---|---|---|---|---|---|"]
+    for key in ("nerfacto", "ngp"):
+        entry = result.get(key)
+        if not isinstance(entry, dict) or "ms_per_iteration" not in entry:
+            continue
+        ratio = entry.get("ratio_to_sd_floor")
+        peak = entry.get("peak_gpu_memory_gb")
+        rows.append(f"| {key} | {entry['setup_seconds'] + entry['load_diffusion_seconds']:.1f} | {entry['compile_seconds']:.1f} "
+                    f"| {entry['ms_per_iteration']:.1f} | {'-' if ratio is None else f'{ratio:.2f}'} "
+                    f"| {'-' if peak is None else f'{peak:.2f}'} | {entry['extrapolated_10k_seconds'] / 60:.1f} |")
+    floor = result.get("sd_floor_ms")
+    head = f"{result.get('device')}; {result.get('description')}"
+    return "\n".join([head, *rows] + ([f"bare SD step (VAE encode fwd+bwd + UNet batch 2): {floor:.1f} ms"] if floor else []))
+
+
+if __name__ == "__main__":
+    main()
