@@ -16,6 +16,8 @@ import nerfacc
 import torch
 from torch import Tensor
 
+from sked_ns.nerfacc_kernels import ensure_kernels
+
 MAX_CANDIDATES = 1 << 22
 """Ray-step candidates examined at once by the torch marcher (bounds its memory)."""
 
@@ -29,6 +31,7 @@ class PortableOccGridEstimator(nerfacc.OccGridEstimator):
                  t_max: Optional[Tensor] = None, render_step_size: float = 1e-3, early_stop_eps: float = 1e-4,
                  alpha_thre: float = 0.0, stratified: bool = False, cone_angle: float = 0.0):
         if rays_o.is_cuda:
+            ensure_kernels()
             return super().sampling(rays_o, rays_d, sigma_fn=sigma_fn, alpha_fn=alpha_fn, near_plane=near_plane,
                                     far_plane=far_plane, t_min=t_min, t_max=t_max, render_step_size=render_step_size,
                                     early_stop_eps=early_stop_eps, alpha_thre=alpha_thre, stratified=stratified,
@@ -166,6 +169,7 @@ def packed_exclusive_transmittance(optical_depth: Tensor, ray_indices: Tensor, n
 def render_weights(t_starts: Tensor, t_ends: Tensor, sigmas: Tensor, ray_indices: Tensor, n_rays: int) -> Tensor:
     """Volume-rendering weights T_i alpha_i of packed samples (nerfacc on CUDA, torch elsewhere)."""
     if sigmas.is_cuda:
+        ensure_kernels()
         return nerfacc.render_weight_from_density(t_starts, t_ends, sigmas, ray_indices=ray_indices, n_rays=n_rays)[0]
     optical_depth = sigmas * (t_ends - t_starts)
     alphas = -torch.expm1(-optical_depth)
