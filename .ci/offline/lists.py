@@ -31,7 +31,7 @@ RUNTIME_MODULES = [
 ]
 EXPORT_MODULES = ["nerfstudio.scripts.exporter"]
 # Imported when present but optional (guarded imports), and never needed to train, evaluate or sketch.
-OPTIONAL = {"ipython", "traitlets", "truststore", "pysocks", "sked-ns"}
+OPTIONAL = {"ipython", "traitlets", "pysocks", "sked-ns"}
 # Two distributions of one module: the node needs only the superset (both install `cv2`).
 SUPERSEDED = {"opencv-python-headless": "opencv-contrib-python-headless"}
 
