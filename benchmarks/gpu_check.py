@@ -395,7 +395,8 @@ def main() -> None:
     parser.add_argument("--base-steps", type=int, default=None, help="fitting steps of each base")
     parser.add_argument("--floor-repeats", type=int, default=None)
     parser.add_argument("--profile-steps", type=int, default=None)
-    parser.add_argument("--budget-s", type=float, default=540.0, help="skip later phases past this much time")
+    parser.add_argument("--budget-s", type=float, default=None,
+                        help="skip later phases past this much time (default: 540 s on CUDA, a lent GPU's slot; none on CPU)")
     parser.add_argument("--skip", default="", help="comma-separated phases to skip (e.g. ngp,tests)")
     parser.add_argument("--output", type=Path, default=RESULTS / "gpu_check.json")
     parser.add_argument("--workdir", type=Path, default=None)
@@ -410,7 +411,8 @@ def main() -> None:
     if args.device == "cuda" and not torch.cuda.is_available():
         parser.error("--device cuda, but torch sees no CUDA device here: pass --device cpu")
 
-    check = Check(args.output, args.budget_s)
+    budget = args.budget_s if args.budget_s is not None else (540.0 if args.device == "cuda" else float("inf"))
+    check = Check(args.output, budget)
     check.result.update(
         description="benchmarks/gpu_check.py: real `ns-train sked --prompt` edits with SD v1.x's "
                     f"{'full' if full else 'tiny'} architecture and RANDOM weights (honest timings, meaningless images)",

@@ -41,8 +41,6 @@ def edit_config(
     config.pipeline.model.guidance_resolution = guidance_resolution
     config.pipeline.model.silhouette_resolution = silhouette_resolution
     config.pipeline.model.edit_box_warmup = max(1, iterations // 2)
-    for optimizer in config.optimizers.values():
-        optimizer["scheduler"].max_steps = iterations
     return config
 
 

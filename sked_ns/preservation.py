@@ -122,13 +122,19 @@ class SketchDistanceField(nn.Module):
     def per_view_distance(self, points: Float[Tensor, "num_points 3"]) -> Float[Tensor, "num_views num_points"]:
         """d_j(p) in image widths for every view j; +inf behind a camera (one view at a time)."""
         points = points.to(self.projection_rows)
-        return torch.stack(
-            [
-                _sketch_distance(points, self.projection_rows[:, j : j + 1], self.distance_maps, self.offsets[j : j + 1],
-                                 self.sizes[:, j : j + 1], 1.0 / self.sizes[0, j : j + 1])
-                for j in range(self.num_views)
-            ]
-        )
+        with torch.autocast(device_type=points.device.type, enabled=False):  # pixels need float32
+            return torch.stack(
+                [
+                    _sketch_distance(points, self.projection_rows[:, j : j + 1], self.distance_maps,
+                                     self.offsets[j : j + 1], self.sizes[:, j : j + 1], 1.0 / self.sizes[0, j : j + 1])
+                    for j in range(self.num_views)
+                ]
+            )
+
+    @torch.no_grad()
+    def hull_distance(self, points: Float[Tensor, "num_points 3"]) -> Float[Tensor, "num_points"]:
+        """max_j d_j(p): 0 exactly inside the sketches' visual hull (every view's mask agrees), in image widths."""
+        return self.per_view_distance(points).amax(dim=0)
 
     @torch.no_grad()
     def distance(self, points: Float[Tensor, "num_points 3"]) -> Float[Tensor, "num_points"]:

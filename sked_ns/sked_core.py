@@ -24,6 +24,7 @@ from typing import Dict, List, Literal, Optional, Sequence, Tuple
 import torch
 import torchmetrics.image.lpip as lpip_module
 from nerfstudio.cameras.rays import RayBundle, RaySamples
+from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackLocation
 from nerfstudio.field_components.encodings import HashEncoding
 from nerfstudio.field_components.field_heads import FieldHeadNames
 from torch import Tensor
@@ -32,6 +33,7 @@ from sked_ns.base_scene import read_model_state, uses_tcnn
 from sked_ns.edit_box import EditBox, compute_edit_box
 from sked_ns.guidance import Guidance, ReferenceGuidanceConfig, RenderedView, StableDiffusionGuidanceConfig
 from sked_ns.losses import occupancy_log_probabilities, preservation_loss, silhouette_loss, sparsity_loss
+from sked_ns.photo_anchor import anchor_rays, correct_poses, editable_box, rays_away_from_edit
 from sked_ns.preservation import SketchDistanceField, check_beta
 from sked_ns.sketches import SketchSet
 
@@ -76,12 +78,24 @@ class SkedOptions:
     """torch.compile the sketch-distance lookup on CUDA."""
     samples_per_ray_scale: float = 1.0
     """Samples per ray relative to the base's (nerfacto: sample counts; instant-ngp: 1 / step size)."""
+    lambda_photo: float = 1.0
+    """Weight of the base-photo anchor (photo_anchor.py): the base's training photos, at rays that never come
+    near the editable region, keep the edit as the base was trained. 0: the paper's losses only."""
+    photo_threshold: float = 0.99
+    """A photo ray anchors the edit only if every point on it has a preservation weight above this."""
+    base_camera_optimizer: Literal["off", "SO3xR3", "SE3"] = "off"
+    """The base's camera optimisation (copied from it): its learnt pose corrections are applied to photo rays."""
     ablation: Literal["none", "no-preserve", "no-silhouette", "text-only"] = "none"
     """The paper's ablations: drop L_pres, drop L_sil, or both (text only: the sketches only aim the views)."""
 
     @property
     def effective_lambda_pres(self) -> float:
         return 0.0 if self.ablation in ("no-preserve", "text-only") else self.lambda_pres
+
+    @property
+    def effective_lambda_photo(self) -> float:
+        # The photo anchor preserves too: the no-preserve ablations drop it with L_pres.
+        return 0.0 if self.ablation in ("no-preserve", "text-only") else self.lambda_photo
 
     @property
     def effective_lambda_sil(self) -> float:
@@ -189,6 +203,19 @@ class SkedMixin:
                 f"shape mismatch {mismatched[:3]}). Is --data the base's data, and the base a supported method?"
             )
         self.load_state_dict({key: state[key] for key in wanted}, strict=False)
+        self._base_cameras = self._frozen_base_cameras(state)
+
+    def _frozen_base_cameras(self, state: Dict[str, Tensor]) -> list:
+        """The base's learnt pose corrections (nerfacto optimises its cameras): photo rays need them."""
+        if self.config.base_camera_optimizer == "off" or "camera_optimizer.pose_adjustment" not in state:
+            return []
+        from nerfstudio.cameras.camera_optimizers import CameraOptimizerConfig
+
+        adjustment = state["camera_optimizer.pose_adjustment"]
+        optimizer = CameraOptimizerConfig(mode=self.config.base_camera_optimizer).setup(
+            num_cameras=adjustment.shape[0], device="cpu")
+        optimizer.load_state_dict({"pose_adjustment": adjustment})
+        return [optimizer.eval().requires_grad_(False)]
 
     def _freeze_base(self, *modules: torch.nn.Module) -> None:
         # A list hides the frozen base from the module tree, and so from optimisers and checkpoints.
@@ -201,7 +228,7 @@ class SkedMixin:
     def _apply(self, fn, *args, **kwargs):
         # `.to()`, `.cuda()`, `.half()` reach the hidden base too.
         super()._apply(fn, *args, **kwargs)
-        for module in getattr(self, "_base", []):
+        for module in getattr(self, "_base", []) + getattr(self, "_base_cameras", []):
             module._apply(fn, *args, **kwargs)
         return self
 
@@ -226,9 +253,27 @@ class SkedMixin:
         """Losses of the sampler itself (nerfacto's interlevel loss), over all renders of a step."""
         return {}
 
+    # ---- SKED's own step: the warm-up follows it in training, in a resumed run and in a loaded edit ----
+    sked_step: int = 0
+
+    def update_to_step(self, step: int) -> None:
+        """nerfstudio calls this when it loads a checkpoint (resume, viewer, ns-render, ns-export)."""
+        self.sked_step = int(step)
+
+    def sked_step_callback(self) -> TrainingCallback:
+        return TrainingCallback(where_to_run=[TrainingCallbackLocation.BEFORE_TRAIN_ITERATION],
+                                update_every_num_iters=1, func=self.update_to_step)
+
+    def get_extra_state(self) -> Dict[str, int]:
+        # Saved in every checkpoint: a loaded edit samples as training ended, whoever loads it.
+        return {"sked_step": self.sked_step}
+
+    def set_extra_state(self, state: Dict[str, int]) -> None:
+        self.sked_step = int(state.get("sked_step", self.sked_step))
+
     def edit_box_boost(self) -> float:
         """How strongly the edit box is still forced into the sampling (1 at step 0, 0 after warm-up)."""
-        return max(0.0, 1.0 - self.step / max(self.config.edit_box_warmup, 1))
+        return max(0.0, 1.0 - self.sked_step / max(self.config.edit_box_warmup, 1))
 
     # ---- shared --------------------------------------------------------------------------
     def _collide(self, ray_bundle: RayBundle) -> RayBundle:
@@ -238,6 +283,32 @@ class SkedMixin:
     def preservation_weight(self, positions: Tensor) -> Tensor:
         """w for sample positions (..., 3) -> (..., 1)."""
         return self.sketch_field.preservation_weight(positions.detach(), self.config.beta)[..., None]
+
+    @torch.no_grad()
+    def in_sketch_hull(self, positions: Tensor, tolerance: Optional[float] = None) -> Tensor:
+        """Whether points (..., 3) project inside every sketch, to `tolerance` image widths (default a
+        pixel): where new mass may appear."""
+        flat = positions.reshape(-1, 3)
+        inside = self.edit_box.contains(flat)  # cheap first: the box holds the hull
+        if inside.any():
+            if tolerance is None:
+                tolerance = 1.0 / min(view.width for view in self.sketch_set.views)
+            inside[inside.clone()] = self.sketch_field.hull_distance(flat[inside]) <= tolerance
+        return inside.reshape(positions.shape[:-1])
+
+    def expected_preservation(self, positions: Tensor, weights: Tensor, accumulation: Tensor,
+                              ray_indices: Optional[Tensor] = None) -> Tensor:
+        """Per ray: sum_i weight_i w(p_i), plus the background (1 - accumulation), which is preserved.
+
+        0 where a pixel shows content the edit may change, 1 where it shows only what must be kept.
+        `ray_indices` for packed samples (occupancy grids), else samples are (rays, samples, 3).
+        """
+        preserved = (weights * self.preservation_weight(positions)).detach()
+        if ray_indices is None:
+            preserved = preserved.sum(dim=-2)
+        else:
+            preserved = torch.zeros_like(accumulation).index_add_(0, ray_indices, preserved)
+        return (preserved + (1 - accumulation.detach()).clamp(0, 1)).clamp(0, 1)
 
     @contextlib.contextmanager
     def _average_appearance(self):
@@ -249,6 +320,38 @@ class SkedMixin:
         finally:
             self.field.train(was_training)
 
+    # ---- the base-photo anchor --------------------------------------------------------------
+    def editable_box(self) -> Optional[Tensor]:
+        """The box holding every point with w <= photo_threshold (follows beta, which the viewer may change)."""
+        key = (self.config.beta, self.config.photo_threshold)
+        if getattr(self, "_editable_box_key", None) != key:
+            self._editable_box = editable_box(lambda p: self.preservation_weight(p)[..., 0], self.scene_box.aabb,
+                                              self.config.photo_threshold)
+            self._editable_box_key = key
+        return self._editable_box
+
+    def photo_rays_kept(self, rays: RayBundle) -> Tensor:
+        """Which (collided) photo rays never come near the editable region."""
+        count = len(rays)
+        nears = rays.nears if rays.nears is not None else torch.zeros(count, 1, device=rays.origins.device)
+        fars = rays.fars if rays.fars is not None else torch.full((count, 1), 1e10, device=rays.origins.device)
+        return rays_away_from_edit(rays.origins, rays.directions, nears, fars, self.editable_box(),
+                                   lambda p: self.preservation_weight(p)[..., 0], self.config.photo_threshold)
+
+    def photo_anchor(self, rays: RayBundle, rgb: Tensor) -> Optional[Tuple[Tensor, Dict[str, Tensor], Tensor]]:
+        """MSE to the base's photos at its safe rays, rendered as the base was trained (its image's appearance,
+        its corrected pose). Returns (loss, outputs, fraction of rays kept), or None if no ray is safe."""
+        rays = self._collide(rays)
+        safe = self.photo_rays_kept(rays)
+        if not safe.any():
+            return None
+        rays, rgb = anchor_rays(rays, rgb, safe)
+        correct_poses(rays, self._base_cameras)
+        outputs = self._render(rays)[0]
+        predicted, truth = self.renderer_rgb.blend_background_for_loss_computation(
+            pred_image=outputs["rgb"], pred_accumulation=outputs["accumulation"], gt_image=rgb.to(outputs["rgb"]))
+        return torch.nn.functional.mse_loss(predicted.float(), truth.float()), outputs, safe.float().mean()
+
     def get_sked_loss_dict(
         self,
         random_view: RayBundle,
@@ -256,6 +359,7 @@ class SkedMixin:
         sketch_rays: Optional[RayBundle],
         sketch_masks: Tensor,
         step: int,
+        photo: Optional[Tuple[RayBundle, Tensor]] = None,
     ) -> tuple[Dict[str, Tensor], Dict[str, Tensor], Dict[str, Tensor]]:
         """All losses of one iteration; returns (outputs, losses, metrics)."""
         config = self.config
@@ -296,7 +400,15 @@ class SkedMixin:
                 accumulation = sketch["accumulation"].reshape(sketch_masks.shape)
                 losses["silhouette_loss"] = config.effective_lambda_sil * silhouette_loss(accumulation, sketch_masks)
                 metrics["sketch_coverage"] = (accumulation.detach() > 0.5).float().mul(sketch_masks).sum() / sketch_masks.sum().clamp_min(1)
-        losses.update(self._sampling_losses([view] + ([sketch] if sketch is not None else [])))
+        rendered = [view] + ([sketch] if sketch is not None else [])
+        if photo is not None and config.effective_lambda_photo > 0:
+            anchored = self.photo_anchor(*photo)
+            if anchored is not None:
+                loss, photo_view, kept = anchored
+                losses["photo_loss"] = config.effective_lambda_photo * loss
+                metrics["photo_rays_kept"] = kept
+                rendered.append(photo_view)
+        losses.update(self._sampling_losses(rendered))
         metrics["mean_preservation_weight"] = weight.mean().detach()
         metrics["edit_box_boost"] = torch.tensor(self.edit_box_boost())
         bad = [name for name, value in losses.items() if not torch.isfinite(value).all()]

@@ -3,13 +3,15 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Dict, List, Optional, Sequence, Type
+from typing import Dict, List, Optional, Sequence, Tuple, Type
 
+import numpy as np
 import torch
 from nerfstudio.cameras.camera_optimizers import CameraOptimizerConfig
-from nerfstudio.cameras.rays import RayBundle
+from nerfstudio.cameras.rays import RayBundle, RaySamples
+from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackAttributes, TrainingCallbackLocation
 from nerfstudio.field_components.field_heads import FieldHeadNames
-from nerfstudio.model_components.losses import interlevel_loss
+from nerfstudio.model_components.losses import interlevel_loss, scale_gradients_by_distance_squared
 from nerfstudio.models.nerfacto import NerfactoModel, NerfactoModelConfig
 from torch import Tensor
 from torch.nn import Parameter
@@ -66,62 +68,51 @@ class SkedModel(SkedMixin, NerfactoModel):
         self._load_base_weights()
         self._freeze_base(self.field, self.proposal_networks)
         self._boost_proposals_in_edit_box()
-        self._captured: Dict[str, object] = {}
-        self._capture_field_samples()
 
     @torch.no_grad()
     def render_base(self, ray_bundle: RayBundle) -> Dict[str, Tensor]:
-        """The frozen base seen along `ray_bundle` (already collided), e.g. for comparisons."""
-        edit_field, edit_density_fns = self.field, self.density_fns
-        captured = self._captured
+        """The frozen base seen along `ray_bundle` (already collided), with its own proposal networks."""
         base_field, base_proposals = self._base
-        try:
-            object.__setattr__(self, "field", base_field)  # swap without registering a submodule
-            self.density_fns = [network.density_fn for network in base_proposals]
-            return NerfactoModel.get_outputs(self, ray_bundle)
-        finally:
-            object.__setattr__(self, "field", edit_field)
-            self.density_fns = edit_density_fns
-            self._captured = captured
+        outputs, samples, _, weights = self._render_with(ray_bundle, base_field, [p.density_fn for p in base_proposals])
+        outputs["preservation_weight"] = self.expected_preservation(samples.frustums.get_positions(), weights,
+                                                                    outputs["accumulation"])
+        return {key: value for key, value in outputs.items() if key not in ("weights_list", "ray_samples_list")}
 
     # ---- sampling the edit region -----------------------------------------------------------
     def _boost_proposals_in_edit_box(self) -> None:
-        """Add density inside the edit box to the proposal networks during warm-up.
+        """Add density inside the sketches' visual hull to the proposal networks during warm-up.
 
         A nerfacto base has no mass where the new content goes, so its proposal networks
-        would never place samples there; the boost does until they learn the new mass.
+        would never place samples there; the boost does until they learn the new mass. Only
+        the hull (where every view's mask agrees), not the whole edit box: samples, and so new
+        mass, in the box's empty corners are haze from other viewpoints.
         """
-        low = torch.tensor(self.edit_box.min, dtype=torch.float32)
-        high = torch.tensor(self.edit_box.max, dtype=torch.float32)
-        diagonal = float(torch.linalg.norm(high - low).clamp_min(1e-6))
+        diagonal = float(np.linalg.norm(self.edit_box.max - self.edit_box.min).clip(1e-6))
 
         def boosted(density_fn):
             def density(positions: Tensor, times: Optional[Tensor] = None) -> Tensor:
                 value = density_fn(positions, times)
                 strength = self.config.edit_box_density * self.edit_box_boost()
                 if strength > 0:
-                    inside = ((positions >= low.to(positions.device)) & (positions <= high.to(positions.device))).all(-1)
-                    value = value + strength / diagonal * inside[..., None].to(value.dtype)
+                    value = value + strength / diagonal * self.in_sketch_hull(positions)[..., None].to(value.dtype)
                 return value
 
             return density
 
         self.density_fns = [boosted(fn) for fn in self.density_fns]
 
-    def _capture_field_samples(self) -> None:
-        """Keep the last samples and field outputs: L_pres needs them, nerfacto returns neither.
+    def get_training_callbacks(self, training_callback_attributes: TrainingCallbackAttributes) -> List[TrainingCallback]:
+        """SKED's step, and the proposal sampler's update schedule; no proposal-weight anneal.
 
-        nerfacto calls `self.field.forward(...)` directly, which skips module hooks, so the
-        bound method is wrapped instead.
+        nerfacto's anneal restarts at 0 for every run: the trained base would be sampled almost
+        uniformly for hundreds of steps. The base's proposals are trained, so anneal stays 1.
         """
-        forward = self.field.forward
-
-        def capturing_forward(ray_samples, *args, **kwargs):
-            outputs = forward(ray_samples, *args, **kwargs)
-            self._captured = {"ray_samples": ray_samples, "field_outputs": outputs}
-            return outputs
-
-        self.field.forward = capturing_forward
+        self.proposal_sampler.set_anneal(1.0)
+        return [
+            self.sked_step_callback(),
+            TrainingCallback(where_to_run=[TrainingCallbackLocation.AFTER_TRAIN_ITERATION], update_every_num_iters=1,
+                             func=self.proposal_sampler.step_cb),
+        ]
 
     def get_param_groups(self) -> Dict[str, List[Parameter]]:
         groups = self._hash_grid_groups(proposal_networks=self.proposal_networks, fields=self.field)
@@ -129,29 +120,59 @@ class SkedModel(SkedMixin, NerfactoModel):
         return groups
 
     # ---- rendering ------------------------------------------------------------------------
+    def _render_with(self, ray_bundle: RayBundle, field, density_fns) -> Tuple[Dict, RaySamples, Dict, Tensor]:
+        """nerfacto's render with the given field and proposal densities: the edit's, or the frozen base's.
+
+        Returns the outputs, the final samples, the field outputs there and their weights (L_pres
+        and the preservation-weight output need them; nerfacto's own get_outputs returns neither).
+        """
+        ray_samples, weights_list, ray_samples_list = self.proposal_sampler(ray_bundle, density_fns=density_fns)
+        field_outputs = field.forward(ray_samples, compute_normals=self.config.predict_normals)
+        if self.config.use_gradient_scaling:
+            field_outputs = scale_gradients_by_distance_squared(field_outputs, ray_samples)
+        weights = ray_samples.get_weights(field_outputs[FieldHeadNames.DENSITY])
+        weights_list.append(weights)
+        ray_samples_list.append(ray_samples)
+        with torch.no_grad():
+            depth = self.renderer_depth(weights=weights, ray_samples=ray_samples)
+        outputs = {
+            "rgb": self.renderer_rgb(rgb=field_outputs[FieldHeadNames.RGB], weights=weights),
+            "accumulation": self.renderer_accumulation(weights=weights),
+            "depth": depth,
+            "expected_depth": self.renderer_expected_depth(weights=weights, ray_samples=ray_samples),
+            "weights_list": weights_list,
+            "ray_samples_list": ray_samples_list,
+        }
+        if self.config.predict_normals:
+            normals = self.renderer_normals(normals=field_outputs[FieldHeadNames.NORMALS], weights=weights)
+            outputs["normals"] = self.normals_shader(normals)
+            outputs["pred_normals"] = self.normals_shader(
+                self.renderer_normals(field_outputs[FieldHeadNames.PRED_NORMALS], weights=weights))
+        for i in range(self.config.num_proposal_iterations):
+            outputs[f"prop_depth_{i}"] = self.renderer_depth(weights=weights_list[i], ray_samples=ray_samples_list[i])
+        return outputs, ray_samples, field_outputs, weights
+
     def _render(self, ray_bundle: RayBundle):
-        outputs = NerfactoModel.get_outputs(self, ray_bundle)
-        return outputs, self._captured["ray_samples"], self._captured["field_outputs"]
+        outputs, samples, field_outputs, _ = self._render_with(ray_bundle, self.field, self.density_fns)
+        return outputs, samples, field_outputs
 
     def _sampling_losses(self, rendered: Sequence[Dict[str, Tensor]]) -> Dict[str, Tensor]:
         loss = sum(interlevel_loss(r["weights_list"], r["ray_samples_list"]) for r in rendered)
         return {"interlevel_loss": self.config.interlevel_loss_mult * loss}
 
     def get_outputs(self, ray_bundle: RayBundle):
-        outputs = super().get_outputs(ray_bundle)
-        samples = self._captured.get("ray_samples")
-        if samples is not None and not self.training:
-            weights = outputs.get("weights_list", [None])[-1]
-            if weights is None:
-                weights = samples.get_weights(self._captured["field_outputs"][FieldHeadNames.DENSITY])
-            preservation = self.preservation_weight(samples.frustums.get_positions())
-            # Background counts as preserved: the viewer shows where the edit may act.
-            accumulation = weights.sum(dim=-2)
-            outputs["preservation_weight"] = (weights * preservation).sum(dim=-2) + (1 - accumulation).clamp(0, 1)
-            outputs = self._steer(ray_bundle, outputs)
-        return outputs
+        outputs, samples, _, weights = self._render_with(ray_bundle, self.field, self.density_fns)
+        if self.training:
+            return outputs
+        # Proposal samples use a lot of memory and only the interlevel loss needs them.
+        outputs = {key: value for key, value in outputs.items() if key not in ("weights_list", "ray_samples_list")}
+        outputs["preservation_weight"] = self.expected_preservation(samples.frustums.get_positions(), weights,
+                                                                    outputs["accumulation"])
+        return self._steer(ray_bundle, outputs)
 
 
 def copy_base_architecture(target: SkedModelConfig, base_model_config) -> None:
     """Make the edit's field the base's shape (hash grids, MLPs, proposal networks)."""
     copy_architecture(target, base_model_config, ARCHITECTURE_FIELDS)
+    cameras = getattr(base_model_config, "camera_optimizer", None)
+    target.base_camera_optimizer = getattr(cameras, "mode", "off") if cameras is not None else "off"

@@ -11,7 +11,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Dict, List, Tuple, Type
 
-import nerfacc
+import numpy as np
 import torch
 from nerfstudio.cameras.rays import RayBundle, RaySamples
 from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackAttributes, TrainingCallbackLocation
@@ -50,7 +50,6 @@ class SkedNGPModel(SkedMixin, NGPModel):
 
     def populate_modules(self) -> None:
         check_beta(self.config.beta)
-        self.step = 0
         self.config = self._scaled_config()
         with without_lpips():
             super().populate_modules()  # fills in render_step_size when the base left it automatic
@@ -63,11 +62,35 @@ class SkedNGPModel(SkedMixin, NGPModel):
         self._setup_sked()
         self._load_base_weights()
         self._freeze_base(self.field, self.occupancy_grid)
-        self._base.append(VolumetricSampler(occupancy_grid=self._base[1], density_fn=None))
+        # The base's own sampler: its grid and its density (culling empty and hidden samples, as the base renders).
+        self._base.append(VolumetricSampler(occupancy_grid=self._base[1], density_fn=self._base[0].density_fn))
         resolution = self.occupancy_grid.resolution.tolist()
         cells = occupancy_grid_mask(self.edit_box, self.scene_aabb.tolist(), resolution, self.config.grid_levels)
+        cells = self._hull_cells(cells)
         self.register_buffer("edit_box_cells", cells.to(self.occupancy_grid.binaries.device), persistent=False)
         self._switch_on_edit_box()
+
+    @torch.no_grad()
+    def _hull_cells(self, cells: Tensor) -> Tensor:
+        """Of the edit box's cells, those the sketches' visual hull reaches (a 3x3x3 lattice per cell tested):
+        new mass belongs in the hull, and cells in the box's empty corners only grow haze."""
+        index = cells.nonzero()
+        if len(index) == 0:
+            return cells
+        aabbs = self.occupancy_grid.aabbs.cpu()[index[:, 0]]
+        resolution = self.occupancy_grid.resolution.cpu().float()
+        lattice = torch.stack(torch.meshgrid(*[torch.tensor([0.0, 0.5, 1.0])] * 3, indexing="ij"), -1).reshape(-1, 3)
+        unit = (index[:, None, 1:].float() + lattice[None]) / resolution
+        points = aabbs[:, None, :3] + unit * (aabbs[:, None, 3:] - aabbs[:, None, :3])
+        # Half a lattice step seen from the sketch cameras, in image widths: thin parts between lattice points count.
+        step = float(((aabbs[-1, 3:] - aabbs[-1, :3]) / resolution).norm()) / 2  # the coarsest level present
+        views = self.sketch_set.views
+        tolerance = max(step * view.fl_x / (view.width * float(np.linalg.norm(view.camera_to_world[:, 3] - self.edit_box.center)))
+                        for view in views)
+        reached = self.in_sketch_hull(points.reshape(-1, 3), tolerance).reshape(len(index), -1).any(dim=-1)
+        hull = torch.zeros_like(cells)
+        hull[tuple(index[reached].T)] = True
+        return hull
 
     # ---- the occupancy grid ----------------------------------------------------------------
     @torch.no_grad()
@@ -75,13 +98,13 @@ class SkedNGPModel(SkedMixin, NGPModel):
         self.occupancy_grid.binaries |= self.edit_box_cells
 
     def get_training_callbacks(self, training_callback_attributes: TrainingCallbackAttributes) -> List[TrainingCallback]:
-        return [TrainingCallback(where_to_run=[TrainingCallbackLocation.BEFORE_TRAIN_ITERATION],
+        return [self.sked_step_callback(),
+                TrainingCallback(where_to_run=[TrainingCallbackLocation.BEFORE_TRAIN_ITERATION],
                                  update_every_num_iters=1, func=self.update_occupancy_grid)]
 
     @torch.no_grad()
     def update_occupancy_grid(self, step: int) -> None:
         """instant-ngp's EMA update; during the warm-up no cell turns off and the edit box stays on."""
-        self.step = step
         grid = self.occupancy_grid
         before = grid.binaries.clone()
         # The base's cells are already known: sample them like instant-ngp after its own warm-up.
@@ -96,12 +119,13 @@ class SkedNGPModel(SkedMixin, NGPModel):
         return self._hash_grid_groups(fields=self.field)
 
     # ---- rendering ------------------------------------------------------------------------
-    def _render_with(self, ray_bundle: RayBundle, field_module, sampler) -> Tuple[Dict[str, Tensor], RaySamples, Dict]:
+    def _render_with(self, ray_bundle: RayBundle, field_module, sampler, alpha_thre: float) -> Tuple[Dict[str, Tensor], RaySamples, Dict]:
         num_rays = len(ray_bundle)
+        sampler.train(self.training)  # the frozen base's sampler is outside the module tree: follow the model
         with torch.no_grad():
             ray_samples, ray_indices = sampler(
                 ray_bundle=ray_bundle, near_plane=self.config.near_plane, far_plane=self.config.far_plane,
-                render_step_size=self.config.render_step_size, alpha_thre=self.config.alpha_thre,
+                render_step_size=self.config.render_step_size, alpha_thre=alpha_thre,
                 cone_angle=self.config.cone_angle,
             )
         field_outputs = field_module(ray_samples)
@@ -121,25 +145,27 @@ class SkedNGPModel(SkedMixin, NGPModel):
         return outputs, ray_samples, field_outputs
 
     def _render(self, ray_bundle: RayBundle):
-        return self._render_with(ray_bundle, self.field, self.sampler)
+        # No alpha culling while training (as the authors' marcher): the new content's samples start
+        # with alpha ~0, and culling them would starve L_sil of gradient inside the empty sketch.
+        alpha_thre = 0.0 if self.training else self.config.alpha_thre
+        return self._render_with(ray_bundle, self.field, self.sampler, alpha_thre)
 
     @torch.no_grad()
     def render_base(self, ray_bundle: RayBundle) -> Dict[str, Tensor]:
         base_field, _, base_sampler = self._base
-        outputs = self._render_with(ray_bundle, base_field, base_sampler)[0]
-        return {key: value for key, value in outputs.items() if not key.startswith("_")}
+        outputs, samples, _ = self._render_with(ray_bundle, base_field, base_sampler, self.config.alpha_thre)
+        return self._with_preservation(outputs, samples)
 
     def get_outputs(self, ray_bundle: RayBundle):
         outputs, samples, _ = self._render(ray_bundle)
+        if self.training:
+            return {key: value for key, value in outputs.items() if not key.startswith("_")}
+        return self._steer(ray_bundle, self._with_preservation(outputs, samples))
+
+    def _with_preservation(self, outputs: Dict[str, Tensor], samples: RaySamples) -> Dict[str, Tensor]:
         weights, ray_indices = outputs.pop("_weights"), outputs.pop("_ray_indices")
-        if not self.training:
-            preservation = self.preservation_weight(samples.frustums.get_positions())
-            preserved = nerfacc.accumulate_along_rays(
-                (weights * preservation)[..., 0], values=None, ray_indices=ray_indices, n_rays=len(ray_bundle)
-            )
-            # Background counts as preserved: the viewer shows where the edit may act.
-            outputs["preservation_weight"] = preserved + (1 - outputs["accumulation"]).clamp(0, 1)
-            outputs = self._steer(ray_bundle, outputs)
+        outputs["preservation_weight"] = self.expected_preservation(
+            samples.frustums.get_positions(), weights, outputs["accumulation"], ray_indices=ray_indices)
         return outputs
 
 

@@ -40,6 +40,10 @@ class SkedTrainerConfig(TrainerConfig):
 
 def resolve_edit(config: SkedTrainerConfig) -> None:
     """Fill the model config from --load-dir and the aliases; safe to call twice."""
+    # Learning rates decay to 0.1x by the end of this edit (method.md), however long --max-num-iterations makes it.
+    for optimizer in config.optimizers.values():
+        if hasattr(optimizer.get("scheduler"), "max_steps"):
+            optimizer["scheduler"].max_steps = config.max_num_iterations
     model = config.pipeline.model
     if config.sketches is not None:
         model.sketches = config.sketches

@@ -74,7 +74,8 @@ def test_base_files_untouched_and_base_field_frozen(scene, edited):
     # The frozen base is not in the checkpoint, nor is any guidance weight.
     checkpoint = torch.load(sorted((edited["run"] / "nerfstudio_models").glob("*.ckpt"))[-1], map_location="cpu")
     top_level = {key.split(".")[1] for key in checkpoint["pipeline"] if key.startswith("_model.")}
-    assert top_level <= {"field", "proposal_networks", "camera_optimizer", "device_indicator_param"}, top_level
+    assert top_level <= {"field", "proposal_networks", "camera_optimizer", "device_indicator_param", "_extra_state"}, top_level
+    assert checkpoint["pipeline"]["_model._extra_state"] == {"sked_step": ITERATIONS - 1}
 
 
 def test_edit_starts_bit_identical_with_fresh_optimisers(scene, tmp_path):
@@ -85,7 +86,7 @@ def test_edit_starts_bit_identical_with_fresh_optimisers(scene, tmp_path):
     base_state = read_model_state(resolve_base(scene["base"]).checkpoint)
     for key, value in pipeline.model.field.state_dict().items():
         assert torch.equal(value, base_state[f"field.{key}"]), key
-    pipeline.model.step = 10**6  # past the edit-box warm-up: rendering equals the base's exactly
+    pipeline.model.update_to_step(10**6)  # past the edit-box warm-up: rendering equals the base's exactly
     view = load_sketch_set(scene["sketches"]).in_model_frame(pipeline.datamanager.dataparser_transform).views[0]
     base_pipeline = load_pipeline(scene["base"])
     assert torch.equal(render_at(pipeline.model, view, 16)["rgb"], render_at(base_pipeline.model, view, 16)["rgb"])

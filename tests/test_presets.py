@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import copy
 import shutil
 import subprocess
 import sys
@@ -108,3 +109,13 @@ def test_ablation_switches_drop_their_losses(scene, tmp_path, ablation, dropped)
         else:
             assert losses[name] > 0
     assert torch.isfinite(sum(losses.values()))
+
+
+def test_learning_rate_decay_spans_the_edit_the_user_asked_for(scene, tmp_path):
+    """`ns-train sked --max-num-iterations 300`: the rates still reach 0.1x at the end, not at step 10,000."""
+    from sked_ns.sked_config import sked_method
+
+    config = copy.deepcopy(sked_method.config)
+    config.load_dir, config.sketches, config.max_num_iterations = scene["base"], scene["sketches"], 300
+    resolve_edit(config)
+    assert {optimizer["scheduler"].max_steps for optimizer in config.optimizers.values()} == {300}

@@ -34,11 +34,20 @@ def _trainer(scene, tmp_path, sketches=None, **model_settings):
 
 
 def _run_and_check(trainer):
-    for step in range(ITERATIONS):
-        trainer.pipeline.model.step = step
-        _, losses, _ = trainer.train_iteration(step)
-        for name, value in losses.items():
+    """Train through nerfstudio's loop (callbacks: SKED's step, proposal schedule, grid updates) and check."""
+    iteration = trainer.train_iteration
+    seen = []
+
+    def checked(step):
+        result = iteration(step)
+        seen.append(step)
+        for name, value in result[1].items():
             assert torch.isfinite(value).all(), (step, name, value)
+        return result
+
+    trainer.train_iteration = checked
+    trainer.train()
+    assert seen == list(range(ITERATIONS)) and trainer.pipeline.model.sked_step == ITERATIONS - 1
     assert trainer.skipped_steps == 0
     for name, parameter in trainer.pipeline.model.named_parameters():
         assert torch.isfinite(parameter).all(), name
