@@ -24,6 +24,7 @@ from sked_ns import demo_scene
 from sked_ns.demo_base import build_demo_base
 from sked_ns.edit_box import compute_edit_box
 from sked_ns.metrics import intersection_over_sketch, psnr_outside
+from sked_ns.novel_views import eval_split_views, evaluate_novel_views
 from sked_ns.preservation import SketchDistanceField, check_beta
 from sked_ns.sketches import DataparserTransform, SketchSet, load_sketch_set, save_sketch_set
 
@@ -131,11 +132,16 @@ def run(output: Path, beta: float = 0.025, size: int = 128, iterations: int = 10
         sketched[outline > 0] = [1.0, 0.1, 0.1]
         rows.append(np.concatenate([before["rgb"].numpy(), after["rgb"].numpy(), sketched], axis=1))
     _write_png(output / "before_after.png", np.concatenate(rows, axis=0))
+    # The edit from the base dataset's evaluation cameras, not only from the sketch views.
+    novel = evaluate_novel_views(edit_model, eval_split_views(trainer.pipeline, size, (1.0, 1.0, 1.0)))
+    _write_png(output / "novel_views.png", np.concatenate([row.numpy() for row in novel.pop("rows")], axis=0))
+    summary["novel_views"] = novel
     summary.update(
         guidance=guidance, iterations=iterations, edit_run=str(trainer.base_dir), views=views,
         ios_mean=float(np.mean([v["ios_edit"] for v in views])),
         psnr_outside_mean=float(np.mean([v["psnr_outside"] for v in views])),
-        images=[str(output / "preservation_weights.png"), str(output / "before_after.png")],
+        images=[str(output / "preservation_weights.png"), str(output / "before_after.png"),
+                str(output / "novel_views.png")],
     )
     (output / "summary.json").write_text(json.dumps(summary, indent=2))
     return summary
@@ -150,6 +156,8 @@ def quiet_third_party_warnings() -> None:
 
 
 def entrypoint() -> None:
+    from sked_ns.evaluate import novel_summary
+
     quiet_third_party_warnings()
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--output", type=Path, default=Path("demo_output"), help="folder for everything the demo writes")
@@ -168,7 +176,9 @@ def entrypoint() -> None:
         f"edit ({summary['guidance']} guidance, {summary['iterations']} iterations): Intersection-over-Sketch "
         f"{summary['ios_mean']:.2f} (base: {np.mean([v['ios_base'] for v in summary['views']]):.2f}), "
         f"PSNR outside the sketches {summary['psnr_outside_mean']:.1f} dB\n"
-        f"wrote {summary['images'][0]} and {summary['images'][1]} (before | after | after with the sketch outline)\n"
+        f"{novel_summary({**summary['novel_views'], 'cameras': 'the demo dataset eval split'})}\n"
+        f"wrote {summary['images'][0]}, {summary['images'][1]} (before | after | after with the sketch outline) and "
+        f"{summary['images'][2]} (base | edit | may-change region dimmed, new opacity in magenta)\n"
         f"edited run: {summary['edit_run']}"
     )
 

@@ -69,27 +69,31 @@ def albedo(points: Tensor, edit_sdf: Callable[[Tensor], Tensor] = hat_sdf) -> Te
     return torch.where(on_edit.unsqueeze(-1), points.new_tensor([0.85, 0.15, 0.15]), sphere)
 
 
-def surface_colour(
-    points: Tensor, sdf: Callable[[Tensor], Tensor] = edited_sdf, edit_sdf: Callable[[Tensor], Tensor] = hat_sdf
-) -> Tensor:
+def shade(points: Tensor, sdf: Callable[[Tensor], Tensor], albedo_fn: Callable[[Tensor], Tensor]) -> Tensor:
     """Albedo under a fixed sun and sky: a function of position only, so a NeRF can match it."""
     offsets = torch.eye(3, dtype=points.dtype) * 1e-3
     normal = torch.stack([sdf(points + o) - sdf(points - o) for o in offsets], dim=-1)
     normal = normal / normal.norm(dim=-1, keepdim=True).clamp_min(1e-8)
     sun = points.new_tensor([0.4, -0.5, 0.77])
     light = 0.35 + 0.4 * (normal * sun).sum(-1).clamp_min(0) + 0.25 * (0.5 + 0.5 * normal[..., 2])
-    return (albedo(points, edit_sdf) * light[..., None]).clamp(0, 1)
+    return (albedo_fn(points) * light[..., None]).clamp(0, 1)
+
+
+def surface_colour(
+    points: Tensor, sdf: Callable[[Tensor], Tensor] = edited_sdf, edit_sdf: Callable[[Tensor], Tensor] = hat_sdf
+) -> Tensor:
+    return shade(points, sdf, lambda p: albedo(p, edit_sdf))
 
 
 def orbit_pose(azimuth_deg: float, elevation_deg: float, radius: float) -> np.ndarray:
     return look_at(orbit_position(azimuth_deg, elevation_deg, radius), np.zeros(3))
 
 
-def render(
-    sdf: Callable[[Tensor], Tensor], camera_to_world: np.ndarray, focal: float, width: int, height: int,
-    edit_sdf: Callable[[Tensor], Tensor] = hat_sdf,
+def trace(
+    sdf: Callable[[Tensor], Tensor], albedo_fn: Callable[[Tensor], Tensor], camera_to_world: np.ndarray, focal: float,
+    width: int, height: int, steps: int = 96,
 ) -> dict[str, Tensor]:
-    """Sphere-trace one view: rgb (h, w, 3), hit mask (h, w) and world hit points (h, w, 3)."""
+    """Sphere-trace one view of any SDF scene: rgb (h, w, 3), hit mask (h, w) and world hit points (h, w, 3)."""
     pose = torch.as_tensor(camera_to_world, dtype=torch.float32)
     cols, rows = torch.meshgrid(torch.arange(width) + 0.5, torch.arange(height) + 0.5, indexing="xy")
     local = torch.stack([(cols - width / 2) / focal, -(rows - height / 2) / focal, -torch.ones_like(cols)], dim=-1)
@@ -97,13 +101,21 @@ def render(
     directions = directions / directions.norm(dim=-1, keepdim=True)
     origin = pose[:, 3].expand_as(directions)
     travelled = torch.zeros(directions.shape[:-1])
-    for _ in range(96):
+    for _ in range(steps):
         distance = sdf(origin + travelled[..., None] * directions)
         travelled = travelled + distance.clamp_max(1.0)
     points = origin + travelled[..., None] * directions
     hit = sdf(points).abs() < 1e-3
-    rgb = torch.where(hit[..., None], surface_colour(points, sdf, edit_sdf), torch.full_like(points, BACKGROUND))
+    rgb = torch.where(hit[..., None], shade(points, sdf, albedo_fn), torch.full_like(points, BACKGROUND))
     return {"rgb": rgb.clamp(0, 1), "hit": hit, "points": points}
+
+
+def render(
+    sdf: Callable[[Tensor], Tensor], camera_to_world: np.ndarray, focal: float, width: int, height: int,
+    edit_sdf: Callable[[Tensor], Tensor] = hat_sdf,
+) -> dict[str, Tensor]:
+    """The demo object (sphere, and `edit_sdf`'s part where `sdf` includes it) at one view."""
+    return trace(sdf, lambda p: albedo(p, edit_sdf), camera_to_world, focal, width, height)
 
 
 def demo_camera_poses(num_views: int, radius: float = 2.4) -> list[np.ndarray]:
@@ -147,6 +159,9 @@ class EditScene:
 
     def render_target(self, camera_to_world: np.ndarray, focal: float, width: int, height: int) -> dict[str, Tensor]:
         return render(self.target_sdf, camera_to_world, focal, width, height, edit_sdf=self.edit_sdf)
+
+    def render_base(self, camera_to_world: np.ndarray, focal: float, width: int, height: int) -> dict[str, Tensor]:
+        return render(sphere_sdf, camera_to_world, focal, width, height)
 
     def sketch_set(self, size: int = 128, views: Optional[Sequence[Tuple[float, float]]] = None) -> SketchSet:
         """Masks = the added part's silhouette from each view; poses in the dataset's data frame."""

@@ -1,10 +1,13 @@
-"""`sked-eval`: the paper's protocol on an edited run's sketch views.
+"""`sked-eval`: the paper's protocol on an edited run's sketch views, and the same edit from other views.
 
 Renders every sketch view with the base and the edit and reports PSNR and SSIM outside the
 sketches, Intersection-over-Sketch, LPIPS outside the sketches and CLIP similarity to the
 prompt over 40 views around the edit, the last two only when their weights are available
-locally (reported as unavailable otherwise, never faked). Writes JSON and a
-contact sheet (base | edit | mask overlay, one row per sketch view).
+locally (reported as unavailable otherwise, never faked). Then scores novel views (the base
+dataset's evaluation split by default; `sked_ns.novel_views`): what the edit must keep
+(`psnr_keep`, `ssim_keep`), new opacity where it may not act (`leak`), and with `--target`,
+the intended result inside and outside the changed region. Writes JSON and a contact sheet
+(base | edit | overlay: one row per sketch view, then a few novel views).
 """
 
 from __future__ import annotations
@@ -18,6 +21,7 @@ import numpy as np
 import torch
 
 from sked_ns.base_scene import resolve_base
+from sked_ns import novel_views
 from sked_ns.metrics import intersection_over_sketch, psnr_outside, ssim_outside
 from sked_ns.clip_score import DEFAULT_CLIP, ClipScorer, orbit_cameras
 from sked_ns.random_views import focal_from_fov
@@ -64,10 +68,41 @@ def clip_similarities(model, sketch_set, prompt: Optional[str], clip_model: str,
     return result
 
 
+def _background(model) -> tuple:
+    """The colour ground-truth photos with alpha are composited on (the model's background)."""
+    colour = getattr(model.config, "background_color", "white")
+    if isinstance(colour, str):
+        return (0.0, 0.0, 0.0) if colour == "black" else (1.0, 1.0, 1.0)
+    return tuple(float(c) for c in torch.as_tensor(colour).reshape(3))
+
+
+def choose_novel_views(pipeline, cameras: str, target: Optional[Path], resolution: int, max_views: int):
+    """The cameras novel views are scored at: --target's, the eval split's, a transforms.json's, or an orbit."""
+    model = pipeline.model
+    background = _background(model)
+    transform = pipeline.datamanager.dataparser_transform
+    if target is not None:
+        views, source = novel_views.transforms_views(target, transform, resolution, background, True), f"target {target}"
+    elif cameras == "eval":
+        views, source = novel_views.eval_split_views(pipeline, resolution, background), "the base dataset's eval split"
+    elif cameras.startswith("orbit"):
+        count = int(cameras.partition(":")[2] or 12)
+        radius = float(np.mean([np.linalg.norm(v.camera_to_world[:, 3] - model.edit_box.center)
+                                for v in model.sketch_set.views]))
+        views, source = novel_views.orbit_views(model.edit_box.center, radius, count, resolution), f"an orbit of {count}"
+    else:
+        views, source = novel_views.transforms_views(Path(cameras), transform, resolution, background, True), cameras
+    if len(views) > max_views:  # evenly spread, first and last included
+        views = [views[i] for i in np.linspace(0, len(views) - 1, max_views).round().astype(int)]
+    return views, source
+
+
 def evaluate(edit_run: Path, base_run: Optional[Path] = None, sketches: Optional[Path] = None,
              resolution: int = 256, device: str = "cpu", clip_model: str = DEFAULT_CLIP,
-             prompt: Optional[str] = None, clip_views: int = 40, clip_resolution: int = 128) -> Dict:
-    """Metrics of every sketch view, their means, and the renders for the contact sheet."""
+             prompt: Optional[str] = None, clip_views: int = 40, clip_resolution: int = 128,
+             cameras: str = "eval", target: Optional[Path] = None, novel_resolution: int = 256,
+             max_novel_views: int = 12) -> Dict:
+    """Metrics of every sketch view, of novel views, their means, and the renders for the contact sheet."""
     edit = resolve_base(edit_run)
     if edit.family != "sked":
         raise ValueError(f"{edit.run_dir / 'config.yml'}: not a SKED edit (method '{edit.method}').")
@@ -116,6 +151,14 @@ def evaluate(edit_run: Path, base_run: Optional[Path] = None, sketches: Optional
     }
     result.update(clip_similarities(edit_pipeline.model, sketch_set, prompt or model_config.prompt, clip_model,
                                     clip_views, clip_resolution, own_base))
+    if cameras != "none":
+        views_to_score, source = choose_novel_views(edit_pipeline, cameras, target, novel_resolution, max_novel_views)
+        # Against the edit's frozen copy of its base (bit-identical to the base), which knows the sketches.
+        novel = novel_views.evaluate_novel_views(edit_pipeline.model, views_to_score, target=target is not None)
+        width = rows[0].shape[1]
+        rows += [torch.nn.functional.interpolate(row.permute(2, 0, 1)[None], scale_factor=width / row.shape[1],
+                                                 mode="bilinear")[0].permute(1, 2, 0) for row in novel.pop("rows")]
+        result["novel_views"] = {"cameras": source, "resolution": novel_resolution, **novel}
     return {"metrics": result, "sheet": torch.cat(rows, dim=0)}
 
 
@@ -135,10 +178,19 @@ def entrypoint() -> None:
     parser.add_argument("--clip-model", default=DEFAULT_CLIP, help="CLIP hub id (cached) or local folder")
     parser.add_argument("--clip-views", type=int, default=40, help="views around the edit for CLIP similarity")
     parser.add_argument("--clip-resolution", type=int, default=128, help="render size of those views")
+    parser.add_argument("--cameras", default="eval",
+                        help="novel views: 'eval' (the base dataset's eval split), 'orbit[:N]' around the edit box, "
+                             "a transforms.json in the base's data frame, or 'none'")
+    parser.add_argument("--target", type=Path, default=None,
+                        help="ground truth of the intended result (transforms.json + images, the base's data frame): "
+                             "scored at its cameras inside and outside the changed region")
+    parser.add_argument("--novel-resolution", type=int, default=256, help="longer side of the novel-view renders")
+    parser.add_argument("--max-novel-views", type=int, default=12, help="at most this many novel views (evenly spread)")
     args = parser.parse_args()
     run = args.config.parent if args.config.name == "config.yml" else args.config
     outcome = evaluate(run, args.base, args.sketches, args.resolution, args.device, args.clip_model, args.prompt,
-                       args.clip_views, args.clip_resolution)
+                       args.clip_views, args.clip_resolution, args.cameras, args.target, args.novel_resolution,
+                       args.max_novel_views)
     args.output.parent.mkdir(parents=True, exist_ok=True)
     args.output.write_text(json.dumps(outcome["metrics"], indent=2))
     sheet = args.sheet or args.output.with_suffix(".png")
@@ -148,8 +200,23 @@ def entrypoint() -> None:
     mean = outcome["metrics"]["mean"]
     print(f"PSNR outside {mean['psnr_outside']:.2f} dB, SSIM outside {mean['ssim_outside']:.3f}, "
           f"IoS {mean['ios']:.3f} (base {mean['ios_base']:.3f}); LPIPS: {outcome['metrics']['lpips_outside']}; "
-          f"CLIP similarity: {outcome['metrics']['clip_similarity']}\n"
-          f"wrote {args.output} and {sheet}")
+          f"CLIP similarity: {outcome['metrics']['clip_similarity']}")
+    if "novel_views" in outcome["metrics"]:
+        print(novel_summary(outcome["metrics"]["novel_views"]))
+    print(f"wrote {args.output} and {sheet}")
+
+
+def novel_summary(novel: Dict) -> str:
+    """One line of the novel-view means (what a user reads first)."""
+    mean = novel["mean"]
+    parts = [f"{len(novel['views'])} novel views ({novel['cameras']}):"]
+    for key, label, unit in (("psnr_keep", "PSNR kept", " dB"), ("ssim_keep", "SSIM kept", ""), ("leak", "leak", ""),
+                             ("psnr_keep_gt", "kept vs ground truth", " dB"),
+                             ("psnr_target_changed", "changed vs target", " dB")):
+        if key in mean:
+            base = mean.get(key + "_base")
+            parts.append(f"{label} {mean[key]:.3g}{unit}" + (f" (base {base:.3g}{unit})" if base is not None else ""))
+    return " ".join(parts[:1]) + " " + ", ".join(parts[1:])
 
 
 if __name__ == "__main__":

@@ -25,9 +25,13 @@ def render_camera(model, camera, base: bool = False) -> Dict[str, torch.Tensor]:
             rays = rays.flatten()
             chunk = model.config.eval_num_rays_per_chunk
             parts = [model.render_base(model._collide(rays[i : i + chunk])) for i in range(0, len(rays), chunk)]
-            outputs = {key: torch.cat([part[key] for part in parts]).reshape(*shape, -1) for key in ("rgb", "accumulation")}
+            outputs = {key: torch.cat([part[key] for part in parts]).reshape(*shape, -1) for key in parts[0]
+                       if key in ("rgb", "accumulation", "preservation_weight")}
     model.train(was_training)
-    return {"rgb": outputs["rgb"].cpu(), "accumulation": outputs["accumulation"][..., 0].cpu()}
+    result = {"rgb": outputs["rgb"].cpu(), "accumulation": outputs["accumulation"][..., 0].cpu()}
+    if "preservation_weight" in outputs:  # SKED models: 1 where the pixel shows only what must be kept
+        result["preservation_weight"] = outputs["preservation_weight"][..., 0].cpu()
+    return result
 
 
 def render_at(model, view: SketchView, resolution: int) -> Dict[str, torch.Tensor]:

@@ -89,20 +89,25 @@ class SkedDataManager(VanillaDataManager):
         )
         self.guidance_resolution = guidance_resolution
 
-    def next_sked(self, step: int) -> Dict:
-        """One random view (rays shaped H x W) plus the fixed sketch views."""
+    def next_sked(self, step: int, photo_rays: bool = False) -> Dict:
+        """One random view (rays shaped H x W), the fixed sketch views, and (photo_rays) a batch of the
+        base's training rays with their photo colours, drawn as nerfstudio draws them for training."""
         generator = torch.Generator().manual_seed(self.config.seed * 1_000_003 + step)  # resumable
         pose, fov, direction = self.random_views.sample(generator)
         size = self.guidance_resolution
         focal = focal_from_fov(fov, size)
         camera = cameras_of(torch.tensor(pose[None], dtype=torch.float32), focal, focal, size / 2, size / 2, size, size)
         ray_bundle = camera.generate_rays(camera_indices=0, keep_shape=True).to(self.device)
-        return {
+        data = {
             "random_view": ray_bundle,
             "random_camera": {"camera_to_world": pose, "focal": focal, "direction": direction},
             "sketch_rays": self.sketch_rays,
             "sketch_masks": self.sketch_masks,
         }
+        if photo_rays:
+            rays, batch = self.next_train(step)
+            data["photo"] = (rays.to(self.device), batch["image"].to(self.device))
+        return data
 
 
 def _concatenate(bundles) -> RayBundle:

@@ -74,7 +74,8 @@ class SkedPipeline(VanillaPipeline):
 
     def get_train_loss_dict(self, step: int):
         self.prepare_guidance()
-        data = self.datamanager.next_sked(step)
+        data = self.datamanager.next_sked(step, photo_rays=self.model.config.effective_lambda_photo > 0)
         return self.model.get_sked_loss_dict(
-            data["random_view"], data["random_camera"], data["sketch_rays"], data["sketch_masks"], step
+            data["random_view"], data["random_camera"], data["sketch_rays"], data["sketch_masks"], step,
+            photo=data.get("photo"),
         )

@@ -49,3 +49,36 @@ def test_reference_edit_reaches_each_target(scene, tmp_path, name):
         ios_after = intersection_over_sketch(after["accumulation"], mask)
         assert ios_after > ios_before + 0.2
         assert psnr_outside(after["rgb"], before["rgb"], mask) > 25.0
+
+
+@pytest.mark.parametrize("name", ["vase", "crate"])
+def test_held_out_scenes_write_base_target_and_sketches(name, tmp_path):
+    from sked_ns import benchmark_scenes
+    import json
+
+    scene = benchmark_scenes.SCENES[name]
+    paths = benchmark_scenes.write_benchmark(name, tmp_path, count=12, size=32)
+    data = json.loads((paths["data"] / "transforms.json").read_text())
+    target = json.loads((paths["target"] / "transforms.json").read_text())
+    assert len(data["frames"]) == 12
+    # The target is the edited scene at exactly the frames nerfstudio holds out for evaluation.
+    held_out = [data["frames"][i]["file_path"] for i in benchmark_scenes.eval_indices(12)]
+    assert [frame["file_path"] for frame in target["frames"]] == held_out
+    changed = [cv2_read(paths["target"] / frame["changed_mask_path"]) for frame in target["frames"]]
+    assert all(0 < mask.mean() < 0.5 for mask in changed if mask.any()) and any(mask.any() for mask in changed)
+    sketches = load_sketch_set(paths["sketches"])
+    assert len(sketches.views) == len(scene.sketch_views) and all(v.mask.any() for v in sketches.views)
+    # The added part touches the base (a flower in a vase, a handle on a crate) and lies in the edit box.
+    points = torch.rand(300_000, 3) * 2 - 1
+    on_edit = points[scene.edit_sdf(points) < 0]
+    assert len(on_edit) > 50 and compute_edit_box(sketches.views).contains(on_edit.double()).all()
+    from sked_ns.benchmark_scenes import union
+
+    base_sdf = union(scene.base_parts)[0]
+    assert base_sdf(on_edit).min() < 0.02, "the edit touches an existing surface"
+
+
+def cv2_read(path):
+    import cv2
+
+    return cv2.imread(str(path), cv2.IMREAD_GRAYSCALE) > 127

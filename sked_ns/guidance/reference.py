@@ -10,7 +10,7 @@ pulled towards the change without being pulled towards the analytic scene elsewh
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Dict, Literal, Optional, Type
+from typing import Dict, Optional, Type
 
 import torch
 from torch import Tensor
@@ -21,8 +21,9 @@ from sked_ns.guidance.base import Guidance, GuidanceConfig, RenderedView
 @dataclass
 class ReferenceGuidanceConfig(GuidanceConfig):
     _target: Type = field(default_factory=lambda: ReferenceGuidance)
-    target: Literal["hat", "handle", "antenna"] = "hat"
-    """Which benchmark edit of the demo sphere renders the references (demo_scene.SCENES)."""
+    target: str = "hat"
+    """Which known edit renders the references: the demo sphere's (demo_scene.SCENES: hat, handle,
+    antenna) or a held-out benchmark scene's (benchmark_scenes.SCENES: vase, crate)."""
     weight: float = 30.0
     """Multiplier of the image MSE. At 1 the silhouette loss outweighs it and fills the sketch
     with a grey haze (demo scene, 100 iterations: a grey hat, PSNR outside 30.9 dB); at 30 the
@@ -36,16 +37,15 @@ class ReferenceGuidance(Guidance):
     def prepare(self, prompt: Optional[str], device: str, context: Dict) -> None:
         # The analytic target lives in the data frame: cameras are mapped back from the model frame.
         self.transform = context["dataparser_transform"]
+        self.scene = reference_scene(self.config.target)
 
     def target_image(self, view: RenderedView) -> tuple[Tensor, Tensor]:
         """Target colour (1, 3, h, w) and where it differs from the base scene (1, 1, h, w)."""
-        from sked_ns import demo_scene
-
         _, _, height, width = view.image.shape
         pose = self.transform.invert(view.camera_to_world)
         # Focal lengths are in pixels, so the frame's scale does not change them.
-        target = demo_scene.SCENES[self.config.target].render_target(pose, view.focal, width, height)
-        base = demo_scene.render(demo_scene.sphere_sdf, pose, view.focal, width, height)
+        target = self.scene.render_target(pose, view.focal, width, height)
+        base = self.scene.render_base(pose, view.focal, width, height)
         changed = (target["rgb"] - base["rgb"]).abs().amax(dim=-1) > 1e-3
         return target["rgb"].permute(2, 0, 1)[None].to(view.image), changed[None, None].to(view.image)
 
@@ -54,3 +54,13 @@ class ReferenceGuidance(Guidance):
         if view.base_image is not None:
             target = torch.where(changed.bool(), target, view.base_image.to(target))
         return {"reference_loss": self.config.weight * (view.image - target).pow(2).mean()}
+
+
+def reference_scene(name: str):
+    """The known edit called `name`: a demo-sphere scene or a held-out benchmark scene."""
+    from sked_ns.benchmark_scenes import scene_named
+
+    try:
+        return scene_named(name)
+    except ValueError as error:
+        raise ValueError(f"--pipeline.model.reference.target: {error}") from None

@@ -1,0 +1,79 @@
+"""Preservation by the base's own photos: their rays that never come near the editable region.
+
+The paper keeps the base only at the samples of one random view (L_pres), so whatever that view
+does not sample -- the far side, the empty space seen from other viewpoints, hash-grid cells
+shared with the new content -- may drift: floaters and damage at novel views. The base's
+training photos are a cheap, exact anchor: a ray every point of which has preservation weight
+above a threshold shows nothing the edit may change, so the edit must still render that photo's
+pixel, as the base was trained to. One small batch of such rays per step anchors everything
+the edit must keep from every training viewpoint.
+
+A ray is tested cheaply: it is safe if it misses the box holding every point with w below the
+threshold (found once on a grid over the scene box), else if all points sampled along its
+stretch inside that box have w above the threshold.
+"""
+
+from __future__ import annotations
+
+from typing import Callable, Optional, Tuple
+
+import torch
+from torch import Tensor
+
+from sked_ns.occupancy import ray_aabb
+
+GRID_RESOLUTION = 64
+"""Cells per side of the grid that finds the editable region's box."""
+SAMPLES_INSIDE = 64
+"""Points tested along a ray's stretch inside that box."""
+
+
+@torch.no_grad()
+def editable_box(preservation_weight: Callable[[Tensor], Tensor], scene_aabb: Tensor, threshold: float,
+                 resolution: int = GRID_RESOLUTION) -> Optional[Tensor]:
+    """(6,) min and max of every grid point with w <= threshold, dilated by one cell; None if there is none."""
+    low, high = scene_aabb[0].float(), scene_aabb[1].float()
+    axis = torch.linspace(0, 1, resolution)
+    grid = torch.stack(torch.meshgrid(axis, axis, axis, indexing="ij"), dim=-1).reshape(-1, 3)
+    points = low + grid * (high - low)
+    weight = torch.cat([preservation_weight(chunk).reshape(-1) for chunk in points.split(1 << 18)])
+    editable = points[weight.cpu() <= threshold]
+    if len(editable) == 0:
+        return None
+    cell = (high - low) / (resolution - 1)
+    return torch.cat([editable.amin(dim=0) - cell, editable.amax(dim=0) + cell])
+
+
+@torch.no_grad()
+def rays_away_from_edit(origins: Tensor, directions: Tensor, nears: Tensor, fars: Tensor, box: Optional[Tensor],
+                        preservation_weight: Callable[[Tensor], Tensor], threshold: float,
+                        samples: int = SAMPLES_INSIDE) -> Tensor:
+    """(N,) True where every point of the ray (between near and far) has w above `threshold`."""
+    safe = torch.ones(len(origins), dtype=torch.bool, device=origins.device)
+    if box is None:
+        return safe
+    entry, exit_ = ray_aabb(origins, directions, box.to(origins))
+    entry = torch.maximum(entry, nears.reshape(-1))
+    exit_ = torch.minimum(exit_, fars.reshape(-1))
+    crossing = exit_ > entry
+    if crossing.any():
+        t = torch.linspace(0, 1, samples, device=origins.device)
+        depths = entry[crossing, None] + (exit_ - entry)[crossing, None] * t
+        points = origins[crossing, None] + directions[crossing, None] * depths[..., None]
+        lowest = preservation_weight(points.reshape(-1, 3)).reshape(-1, samples).amin(dim=-1)
+        safe[crossing] = lowest > threshold
+    return safe
+
+
+def anchor_rays(rays, rgb: Tensor, safe: Tensor) -> Tuple[object, Tensor]:
+    """The safe subset of a photo ray batch and its colours."""
+    index = safe.nonzero()[:, 0]
+    return rays[index], rgb[index]
+
+
+def correct_poses(rays, camera_optimizers) -> None:
+    """Apply the base's learnt pose corrections to its photo rays, as nerfacto did when it trained on them."""
+    for optimizer in camera_optimizers:
+        correction = optimizer(rays.camera_indices.reshape(-1))
+        rays.origins = rays.origins + correction[:, :3, 3]
+        rays.directions = torch.bmm(correction[:, :3, :3], rays.directions[..., None])[..., 0]

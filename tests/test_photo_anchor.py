@@ -1,0 +1,50 @@
+"""The base-photo anchor: which rays are safe, the pose corrections, and that it keeps what L_pres alone loses."""
+
+from __future__ import annotations
+
+import torch
+from nerfstudio.cameras.camera_optimizers import CameraOptimizerConfig
+from nerfstudio.cameras.rays import RayBundle
+
+from sked_ns.photo_anchor import correct_poses, editable_box, rays_away_from_edit
+
+CENTRE = torch.tensor([0.3, -0.2, 0.1])
+
+
+def ball_weight(points):
+    """w = 0 inside a ball of radius 0.2 around CENTRE, 1 outside (a sketch hull stand-in)."""
+    return ((points - CENTRE).norm(dim=-1) > 0.2).float()
+
+
+def test_editable_box_holds_the_low_weight_points_and_little_else():
+    box = editable_box(ball_weight, torch.tensor([[-1.0] * 3, [1.0] * 3]), threshold=0.99, resolution=41)
+    assert (box[:3] <= CENTRE - 0.2).all() and (box[3:] >= CENTRE + 0.2).all()
+    assert (box[3:] - box[:3]).max() < 0.6  # the ball, a cell of margin, not the scene
+    assert editable_box(lambda p: torch.ones(len(p)), torch.tensor([[-1.0] * 3, [1.0] * 3]), 0.99) is None
+
+
+def test_rays_through_the_hull_are_unsafe_and_the_rest_safe():
+    box = editable_box(ball_weight, torch.tensor([[-1.0] * 3, [1.0] * 3]), threshold=0.99, resolution=41)
+    origins = torch.tensor([[-3.0, -0.2, 0.1], [-3.0, 0.9, 0.9], [-3.0, -0.2 + 0.24, 0.1 + 0.24], [0.3, -0.2, 3.0]])
+    directions = torch.tensor([[1.0, 0, 0], [1.0, 0, 0], [1.0, 0, 0], [0, 0, 1.0]])  # the last points away
+    nears, fars = torch.zeros(4, 1), torch.full((4, 1), 100.0)
+    safe = rays_away_from_edit(origins, directions, nears, fars, box, ball_weight, 0.99)
+    # Through the ball; far from the box; through the box's corner but outside the ball; away from it.
+    assert safe.tolist() == [False, True, True, True]
+    # The near plane counts: a ray starting past the ball never meets it.
+    assert rays_away_from_edit(origins[:1], directions[:1], torch.full((1, 1), 4.0), fars[:1], box, ball_weight, 0.99)
+
+
+def test_pose_corrections_match_nerfstudio():
+    optimizer = CameraOptimizerConfig(mode="SO3xR3").setup(num_cameras=3, device="cpu")
+    with torch.no_grad():
+        optimizer.pose_adjustment.normal_(std=0.05)
+    rays = RayBundle(origins=torch.randn(5, 3), directions=torch.nn.functional.normalize(torch.randn(5, 3), dim=-1),
+                     pixel_area=torch.ones(5, 1), camera_indices=torch.tensor([[0], [2], [1], [2], [0]]))
+    expected = RayBundle(origins=rays.origins.clone(), directions=rays.directions.clone(), pixel_area=rays.pixel_area,
+                         camera_indices=rays.camera_indices)
+    with torch.no_grad():
+        optimizer.apply_to_raybundle(expected)
+        correct_poses(rays, [optimizer])
+    torch.testing.assert_close(rays.origins, expected.origins)
+    torch.testing.assert_close(rays.directions, expected.directions)
