@@ -70,6 +70,23 @@ def pixel_directions(
     return local @ camera_to_world[:, :3].T
 
 
+def distort(
+    points: Float[np.ndarray, "*batch 2"], coefficients: Float[np.ndarray, "6"]
+) -> Float[np.ndarray, "*batch 2"]:
+    """Lens distortion of normalised image points ((u - cx) / fx, (v - cy) / fy), v down.
+
+    nerfstudio's perspective model (`camera_utils`, OpenCV's with an r^8 term): coefficients
+    [k1, k2, k3, k4, p1, p2], radial 1 + k1 r^2 + k2 r^4 + k3 r^6 + k4 r^8 plus tangential p1, p2.
+    """
+    k1, k2, k3, k4, p1, p2 = coefficients
+    x, y = points[..., 0], points[..., 1]
+    r = x * x + y * y
+    radial = 1.0 + r * (k1 + r * (k2 + r * (k3 + r * k4)))
+    return np.stack(
+        [radial * x + 2 * p1 * x * y + p2 * (r + 2 * x * x), radial * y + 2 * p2 * x * y + p1 * (r + 2 * y * y)], axis=-1
+    )
+
+
 def check_camera_to_world(matrix: np.ndarray, where: str, atol: float = 1e-3) -> np.ndarray:
     """Validate a 3x4 or 4x4 rigid camera-to-world matrix and return it as 3x4 float64.
 

@@ -2,8 +2,11 @@
 
 The paper says random views keep the edit region in view; the authors' code orbits the
 origin instead. We orbit the edit box centre at the sketch cameras' distance, so the
-edit is in every view whatever the scene. "Front" for directional prompts is the first
-sketch view's side of the object (users sketch from where they look).
+edit is in every view whatever the scene. Angles and fields of view are the authors':
+polar angle uniform in 0-150 deg from straight above (elevation 90 down to -60, uniform in
+the angle, not over the sphere: a fifth of the views look from within 30 deg of the top,
+the "overhead" ones) and field of view 40-80 deg. "Front" for directional prompts is the
+first sketch view's side of the object (users sketch from where they look).
 """
 
 from __future__ import annotations
@@ -17,6 +20,10 @@ import torch
 from torch import Tensor
 
 DIRECTIONS = ("front", "side", "back", "side", "overhead", "bottom")
+ELEVATION_RANGE_DEG = (-60.0, 90.0)
+"""The authors' polar angle 0-150 deg, as elevation; sampled uniformly in the angle, as they do."""
+FOV_RANGE_DEG = (40.0, 80.0)
+"""The authors' field-of-view range."""
 
 
 @dataclass
@@ -30,9 +37,9 @@ class RandomViewSampler:
     front_azimuth_deg: float = 0.0
     """Azimuth called 'front' in directional prompts."""
     radius_scale_range: Tuple[float, float] = (0.8, 1.2)
-    elevation_range_deg: Tuple[float, float] = (-10.0, 60.0)
+    elevation_range_deg: Tuple[float, float] = ELEVATION_RANGE_DEG
     azimuth_range_deg: Tuple[float, float] = (-180.0, 180.0)
-    fov_range_deg: Tuple[float, float] = (40.0, 70.0)
+    fov_range_deg: Tuple[float, float] = FOV_RANGE_DEG
     jitter: float = 0.0
     """Look-at jitter, as a fraction of the radius."""
 
@@ -46,14 +53,14 @@ class RandomViewSampler:
 
     def sample(self, generator: torch.Generator) -> Tuple[np.ndarray, float, str]:
         """One camera: 3x4 camera-to-world (OpenGL), horizontal field of view (deg), direction label."""
-        u = torch.rand(5, generator=generator, dtype=torch.float64).numpy()
+        u = torch.rand(7, generator=generator, dtype=torch.float64).numpy()
         lerp = lambda r, t: r[0] + (r[1] - r[0]) * t  # noqa: E731
         radius = self.radius * lerp(self.radius_scale_range, u[0])
         elevation = lerp(self.elevation_range_deg, u[1])
         azimuth = lerp(self.azimuth_range_deg, u[2])
         fov = lerp(self.fov_range_deg, u[3])
         position = self.centre + orbit_position(azimuth + self.front_azimuth_deg, elevation, radius)
-        target = self.centre + self.jitter * self.radius * (u[4] - 0.5)
+        target = self.centre + self.jitter * self.radius * (u[4:7] - 0.5)  # a point in a cube, not on its diagonal
         return look_at(position, target), fov, view_direction(azimuth, elevation)
 
 

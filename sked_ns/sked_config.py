@@ -8,9 +8,9 @@ YAML files installed with the package (`sked_ns.configs`), so they work after a 
 from __future__ import annotations
 
 import copy
-from dataclasses import fields
+from dataclasses import dataclass, fields
 from importlib import resources
-from typing import Dict
+from typing import Dict, Tuple
 
 import yaml
 from nerfstudio.configs.base_config import ViewerConfig
@@ -30,10 +30,18 @@ PRESETS = ("sked", "sked-fast", "sked-quality")
 PRESET_KEYS = {"description", "iterations", "mixed_precision", "model"}
 
 
+@dataclass
+class SkedAdamOptimizerConfig(AdamOptimizerConfig):
+    """nerfstudio's Adam with betas, which its config lacks (`setup` passes every field to torch.optim.Adam)."""
+
+    betas: Tuple[float, float] = (0.9, 0.99)
+    """Adam's moment decay rates; (0.9, 0.99) as the authors' code (torch's default is (0.9, 0.999))."""
+
+
 def _adam(lr: float, iterations: int) -> dict:
     # lr decays exponentially to 0.1x by the end of the edit (method.md, Optimisation).
     return {
-        "optimizer": AdamOptimizerConfig(lr=lr, eps=1e-15),
+        "optimizer": SkedAdamOptimizerConfig(lr=lr, eps=1e-15),
         "scheduler": ExponentialDecaySchedulerConfig(lr_final=lr * 0.1, max_steps=iterations),
     }
 

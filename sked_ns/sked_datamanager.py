@@ -19,7 +19,7 @@ from nerfstudio.cameras.rays import RayBundle
 from nerfstudio.data.datamanagers.base_datamanager import VanillaDataManager, VanillaDataManagerConfig
 
 from sked_ns.edit_box import EditBox
-from sked_ns.random_views import RandomViewSampler, focal_from_fov
+from sked_ns.random_views import ELEVATION_RANGE_DEG, FOV_RANGE_DEG, RandomViewSampler, focal_from_fov
 from sked_ns.sketches import DataparserTransform, SketchSet, SketchView
 
 
@@ -28,12 +28,12 @@ class SkedDataManagerConfig(VanillaDataManagerConfig):
     _target: Type = field(default_factory=lambda: SkedDataManager)
     radius_scale_range: Tuple[float, float] = (0.8, 1.2)
     """Random-view distance to the edit box centre, relative to the sketch cameras' distance."""
-    elevation_range: Tuple[float, float] = (-10.0, 60.0)
-    """Random-view elevation above the edit box centre, degrees."""
+    elevation_range: Tuple[float, float] = ELEVATION_RANGE_DEG
+    """Random-view elevation above the edit box centre, degrees, uniform (the authors' polar angle 0-150)."""
     azimuth_range: Tuple[float, float] = (-180.0, 180.0)
     """Random-view azimuth relative to the first sketch view, degrees."""
-    fov_range: Tuple[float, float] = (40.0, 70.0)
-    """Random-view horizontal field of view, degrees."""
+    fov_range: Tuple[float, float] = FOV_RANGE_DEG
+    """Random-view horizontal field of view, degrees (the authors' 40-80)."""
     seed: int = 0
     """Seed of the random views (resumed runs continue the sequence from the step)."""
 

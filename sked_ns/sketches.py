@@ -12,6 +12,10 @@ A sketch set is a folder with `sketches.json` and one PNG mask per view::
       ]
     }
 
+Views may carry nerfstudio's lens distortion fields (`k1` ... `p2` or `distortion_params`, as in
+`transforms.json`, perspective cameras only): a mask painted on a distorted photo is resampled
+at load time to the pinhole camera with the same intrinsics, the camera SKED renders with.
+
 `"frame": "data"` (the default) means the poses live in the coordinate frame of the base
 scene's `transforms.json`, so a user can paint masks straight onto two of their own
 photos and copy those photos' camera entries. `"frame": "model"` means nerfstudio's
@@ -31,11 +35,15 @@ import cv2
 import numpy as np
 import torch
 
-from sked_ns.cameras import check_camera_to_world
+from sked_ns.cameras import check_camera_to_world, distort
 
 SKETCHES_JSON = "sketches.json"
 FRAMES = ("data", "model")
 Frame = Literal["data", "model"]
+DISTORTION_FIELDS = ("k1", "k2", "k3", "k4", "p1", "p2")
+"""nerfstudio's lens distortion fields, in the order of its `distortion_params`."""
+PERSPECTIVE_MODELS = ("OPENCV", "PINHOLE", "SIMPLE_PINHOLE", "SIMPLE_RADIAL", "RADIAL")
+"""transforms.json `camera_model`s that nerfstudio treats as perspective cameras (k1 ... p2 in `distort`)."""
 
 
 @dataclass(frozen=True)
@@ -195,6 +203,23 @@ def read_mask(path: Path, width: int, height: int) -> np.ndarray:
     return mask
 
 
+def undistort_mask(mask: np.ndarray, fl_x: float, fl_y: float, cx: float, cy: float, coefficients: np.ndarray) -> np.ndarray:
+    """A mask painted on a distorted photo, as the pinhole camera with the same intrinsics sees it.
+
+    Each pixel takes the photo's pixel its centre distorts into (nearest). The photo's rim that the
+    pinhole view does not see (a thin border for barrel distortion) is dropped.
+    """
+    height, width = mask.shape
+    rows, cols = np.mgrid[0:height, 0:width] + 0.5
+    distorted = distort(np.stack([(cols - cx) / fl_x, (rows - cy) / fl_y], axis=-1), coefficients)
+    u = np.floor(distorted[..., 0] * fl_x + cx)
+    v = np.floor(distorted[..., 1] * fl_y + cy)
+    inside = (u >= 0) & (u < width) & (v >= 0) & (v < height)
+    undistorted = np.zeros_like(mask)
+    undistorted[inside] = mask[v[inside].astype(np.int64), u[inside].astype(np.int64)]
+    return undistorted
+
+
 def _number(entry: dict, key: str, where: str, positive: bool = False) -> float:
     if key not in entry:
         raise ValueError(f"{where}: missing field '{key}'.")
@@ -207,7 +232,27 @@ def _number(entry: dict, key: str, where: str, positive: bool = False) -> float:
     return value
 
 
-def _view_from_json(entry: dict, folder: Path, index: int) -> SketchView:
+def _distortion(entry: dict, camera_model: str, where: str) -> np.ndarray:
+    """[k1, k2, k3, k4, p1, p2], read as nerfstudio reads a transforms.json frame (missing fields are 0)."""
+    if camera_model not in PERSPECTIVE_MODELS:
+        raise ValueError(
+            f"{where}: 'camera_model' {camera_model!r} is not a perspective camera; sketch masks need one of "
+            f"{PERSPECTIVE_MODELS}. Paint the mask on an undistorted (pinhole) image of the view, or on a render of the "
+            "base (`sked-sketch`), and give that camera."
+        )
+    if "distortion_params" not in entry:
+        return np.array([_number(entry, key, where) if key in entry else 0.0 for key in DISTORTION_FIELDS])
+    try:
+        coefficients = np.asarray(entry["distortion_params"], dtype=np.float64)
+    except (TypeError, ValueError):
+        coefficients = np.empty(0)
+    if coefficients.shape != (6,) or not np.all(np.isfinite(coefficients)):
+        raise ValueError(f"{where}: 'distortion_params' must be 6 finite numbers [k1, k2, k3, k4, p1, p2], "
+                         f"got {entry['distortion_params']!r}.")
+    return coefficients
+
+
+def _view_from_json(entry: dict, folder: Path, index: int, camera_model: str = "OPENCV") -> SketchView:
     where = f"{folder / SKETCHES_JSON} views[{index}]"
     if not isinstance(entry, dict):
         raise ValueError(f"{where}: each view must be a JSON object.")
@@ -223,13 +268,21 @@ def _view_from_json(entry: dict, folder: Path, index: int) -> SketchView:
     except (TypeError, ValueError):
         raise ValueError(f"{where}: 'transform_matrix' must be a 4x4 array of numbers.") from None
     mask_path = folder / entry["mask_path"]
+    fl_x, fl_y = (_number(entry, key, where, positive=True) for key in ("fl_x", "fl_y"))
+    cx, cy = (_number(entry, key, where) for key in ("cx", "cy"))
+    coefficients = _distortion(entry, str(entry.get("camera_model", camera_model)), where)
+    mask = read_mask(mask_path, int(width), int(height))
+    if coefficients.any():
+        mask = undistort_mask(mask, fl_x, fl_y, cx, cy, coefficients)
+        if not mask.any():
+            raise ValueError(
+                f"{mask_path}: the mask is empty once the lens distortion of {where} is removed (it lies where the "
+                "undistorted camera does not see). Check the distortion fields k1 ... p2 / 'distortion_params'."
+            )
     return SketchView(
-        mask=read_mask(mask_path, int(width), int(height)),
+        mask=mask,
         camera_to_world=check_camera_to_world(matrix, f"{where} 'transform_matrix'"),
-        fl_x=_number(entry, "fl_x", where, positive=True),
-        fl_y=_number(entry, "fl_y", where, positive=True),
-        cx=_number(entry, "cx", where),
-        cy=_number(entry, "cy", where),
+        fl_x=fl_x, fl_y=fl_y, cx=cx, cy=cy,
         name=str(mask_path),
     )
 
@@ -256,11 +309,16 @@ def load_sketch_set(folder: Path) -> SketchSet:
         raise ValueError(
             f"{json_path}: {len(entries)} view(s); SKED needs at least two sketch views from different viewpoints."
         )
-    return SketchSet(views=[_view_from_json(entry, folder, i) for i, entry in enumerate(entries)], frame=frame)
+    camera_model = str(meta.get("camera_model", "OPENCV"))  # a view's own 'camera_model' takes precedence
+    views = [_view_from_json(entry, folder, i, camera_model) for i, entry in enumerate(entries)]
+    return SketchSet(views=views, frame=frame)
 
 
 def save_sketch_set(sketch_set: SketchSet, folder: Path, overwrite: bool = False) -> Path:
-    """Write a sketch set folder; refuses to replace an existing one unless asked to."""
+    """Write a sketch set folder; refuses to replace an existing one unless asked to.
+
+    Views are pinhole cameras (lens distortion is removed at load time), so nothing is lost.
+    """
     folder = Path(folder)
     json_path = folder / SKETCHES_JSON
     if json_path.exists() and not overwrite:
@@ -269,7 +327,8 @@ def save_sketch_set(sketch_set: SketchSet, folder: Path, overwrite: bool = False
     entries = []
     for index, view in enumerate(sketch_set.views):
         mask_name = f"masks/view_{index:02d}.png"
-        cv2.imwrite(str(folder / mask_name), view.mask.astype(np.uint8) * 255)
+        if not cv2.imwrite(str(folder / mask_name), view.mask.astype(np.uint8) * 255):  # OpenCV fails silently
+            raise OSError(f"{folder / mask_name}: could not write this mask; check that the folder is writable.")
         matrix = np.concatenate([view.camera_to_world, [[0.0, 0.0, 0.0, 1.0]]], axis=0)
         entries.append(
             {

@@ -43,7 +43,9 @@ def test_silhouette_loss_by_hand():
 
 
 def test_sparsity_loss_by_hand():
-    assert sparsity_loss(torch.full((3, 3), 0.5)).item() == pytest.approx(math.log(2), rel=1e-6)
+    assert sparsity_loss(torch.full((3, 3), 0.5)).item() == pytest.approx(1.0, rel=1e-6)  # one bit, as the authors'
+    p = 0.2  # H = -(p log2 p + (1 - p) log2 (1 - p))
+    assert sparsity_loss(torch.full((2,), p)).item() == pytest.approx(-(p * math.log2(p) + (1 - p) * math.log2(1 - p)), rel=1e-6)
     assert sparsity_loss(torch.tensor([0.0, 1.0])).item() < 2e-3
 
 

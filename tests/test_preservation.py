@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import warnings
 
 import numpy as np
 import pytest
@@ -10,7 +11,14 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from sked_ns.preservation import SketchDistanceField, check_beta, preservation_weight, sketch_distance_transform
+from sked_ns.preservation import (
+    SketchDistanceField,
+    _sketch_distance,
+    check_beta,
+    preservation_weight,
+    sketch_distance_transform,
+)
+from sked_ns.sketches import SketchView
 from conftest import random_blob_mask, random_view
 from reference import exact_distance_one, near_pixel_edge, sketch_distance_one
 
@@ -118,7 +126,13 @@ def test_compiled_lookup_equals_eager(rng):
     views = [random_view(rng, 40 + 8 * j, 32, f"v{j}") for j in range(3)]
     points = torch.tensor(_points(rng, 70_000), dtype=torch.float32)  # > one chunk
     eager = SketchDistanceField(views).distance(points)
-    compiled = SketchDistanceField(views, compile=True).distance(points)
+    # pytest ignores UserWarnings (pyproject): record them, or a silent fallback would compare eager with eager.
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        field = SketchDistanceField(views, compile=True)
+        compiled = field.distance(points)
+    assert not [w for w in caught if "sketch lookup" in str(w.message)], "the compiled lookup fell back to eager"
+    assert field._lookup is not _sketch_distance, "the compiled lookup was not used"
     assert torch.equal(torch.isinf(eager), torch.isinf(compiled))
     finite = torch.isfinite(eager)
     torch.testing.assert_close(compiled[finite], eager[finite], rtol=1e-6, atol=1e-6)
@@ -138,3 +152,31 @@ def test_lookup_is_float32_under_mixed_precision(rng, device):
     assert torch.equal(torch.isinf(exact), torch.isinf(mixed))
     finite = torch.isfinite(exact)
     torch.testing.assert_close(mixed[finite], exact[finite], rtol=1e-6, atol=1e-6)
+
+
+@pytest.mark.parametrize("scale", [1, 2])
+def test_a_nerfstudio_ray_through_a_sketch_pixel_has_distance_zero(rng, scale):
+    """Ties the projection to nerfstudio's own: rays of the (rescaled) sketch camera hit the mask pixel they came from."""
+    from sked_ns.sked_datamanager import sketch_view_at
+
+    width, height, (row, col) = 48, 36, (10, 30)
+    view = random_view(rng, width, height, "v")
+    mask = np.zeros((height, width), bool)
+    mask[row : row + scale, col : col + scale] = True  # one pixel of the camera the rays come from
+    view = SketchView(mask=mask, camera_to_world=view.camera_to_world, fl_x=view.fl_x, fl_y=view.fl_y, cx=view.cx,
+                      cy=view.cy)
+    camera, reduced_mask = sketch_view_at(view, max(width, height) // scale)
+    r, c = row // scale, col // scale
+    assert reduced_mask[r, c] and reduced_mask.sum() == 1
+    rays = camera.generate_rays(camera_indices=0, keep_shape=True)
+    field = SketchDistanceField([view])
+    for dr, dc in [(0, 0), (-1, 0), (1, 0), (0, -1), (0, 1)]:
+        origin, direction = rays.origins[r + dr, c + dc], rays.directions[r + dr, c + dc]
+        points = origin + torch.tensor([[0.5], [1.0], [2.0], [5.0]]) * direction
+        distance = field.per_view_distance(points)[0] * width  # pixels
+        if (dr, dc) == (0, 0):
+            assert (distance == 0).all()
+        else:
+            assert (distance >= 1 - 1e-4).all()  # a neighbouring pixel (at half size, its rays graze pixel edges)
+            if scale == 1:
+                torch.testing.assert_close(distance, torch.ones_like(distance), rtol=0, atol=1e-4)

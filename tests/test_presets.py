@@ -35,6 +35,22 @@ def test_every_preset_is_a_registered_method_with_its_settings():
     assert default["iterations"] == 10_000 and default["model"]["guidance_resolution"] == 128  # the paper's
 
 
+def test_every_optimizer_is_adam_with_the_authors_betas_also_after_config_yml():
+    import yaml
+    from nerfstudio.engine.optimizers import Optimizers
+
+    from sked_ns.sked_config import sked_trainer_config
+
+    for name in PRESETS:
+        config = sked_trainer_config(read_preset(name), name)
+        config = yaml.load(yaml.dump(config), Loader=yaml.Loader)  # as ns-train writes and reloads config.yml
+        groups = {group: [torch.nn.Parameter(torch.zeros(2))] for group in config.optimizers}
+        for group, optimizer in Optimizers(config.optimizers, groups).optimizers.items():
+            assert isinstance(optimizer, torch.optim.Adam), (name, group)
+            assert optimizer.param_groups[0]["betas"] == (0.9, 0.99), (name, group)
+            assert optimizer.param_groups[0]["eps"] == 1e-15, (name, group)
+
+
 def test_a_preset_with_an_unknown_key_names_the_file_and_key(tmp_path):
     (tmp_path / "broken.yml").write_text("description: x\niterations: 10\nmodel:\n  guidance_resolutoin: 64\n")
     with pytest.raises(ValueError, match=r"broken\.yml.*model\.guidance_resolutoin"):

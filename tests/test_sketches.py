@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import math
 
 import cv2
 import numpy as np
@@ -172,3 +173,103 @@ def test_dataparser_transform_inverts_and_maps_points(rng):
     np.testing.assert_allclose(transform.points_to_data(moved).numpy(), points.numpy(), atol=1e-12)
     # A camera's origin maps like a point.
     np.testing.assert_allclose(transform.apply(pose)[:, 3], transform.points_to_model(torch.tensor(pose[:, 3])).numpy())
+
+
+# ---- lens distortion: masks painted on distorted photos ------------------------------------------
+WIDTH, HEIGHT, FOCAL, CX, CY = 160, 120, 100.0, 80.3, 59.6
+
+
+def _distorted_set(tmp_path, rng, coefficients, pixel, camera_model=None):
+    """A set whose first view is a disc painted around `pixel` (row, col) of a distorted photo."""
+    rows, cols = np.mgrid[0:HEIGHT, 0:WIDTH]
+    photo_mask = (rows - pixel[0]) ** 2 + (cols - pixel[1]) ** 2 <= 2**2
+    first = SketchView(mask=photo_mask, camera_to_world=random_view(rng, 8, 8).camera_to_world,
+                       fl_x=FOCAL, fl_y=FOCAL, cx=CX, cy=CY, name="photo")
+    save_sketch_set(SketchSet(views=[first, random_view(rng, 64, 48)]), tmp_path / "set")
+    _edit_json(tmp_path / "set", lambda meta: meta["views"][0].update(
+        dict(zip(("k1", "k2", "k3", "k4", "p1", "p2"), coefficients)), **({"camera_model": camera_model} if camera_model else {})))
+    return tmp_path / "set", first
+
+
+@pytest.mark.parametrize("coefficients, pixel", [
+    ((-0.3, 0.05, -0.01, 0.002, 0.004, -0.006), (20, 130)),  # barrel, the photo's upper right
+    ((0.3, 0.02, 0.0, 0.0, -0.003, 0.005), (10, 150)),  # pincushion, near the corner
+], ids=["barrel", "pincushion"])
+def test_a_mask_on_a_distorted_photo_lands_where_nerfstudio_traces_that_pixel(tmp_path, rng, coefficients, pixel):
+    import torch
+    from nerfstudio.cameras.cameras import Cameras, CameraType
+
+    from sked_ns.cameras import project
+
+    folder, photo = _distorted_set(tmp_path, rng, coefficients, pixel)
+    loaded = load_sketch_set(folder).views[0]
+    # nerfstudio trains the photo's pixel with this ray (undistorted by its own camera model).
+    camera = Cameras(camera_to_worlds=torch.tensor(photo.camera_to_world[None], dtype=torch.float32),
+                     fx=FOCAL, fy=FOCAL, cx=CX, cy=CY, width=WIDTH, height=HEIGHT,
+                     distortion_params=torch.tensor(coefficients, dtype=torch.float32), camera_type=CameraType.PERSPECTIVE)
+    ray = camera.generate_rays(camera_indices=0, coords=torch.tensor([[pixel[0] + 0.5, pixel[1] + 0.5]]))
+    point = (ray.origins + 2.0 * ray.directions).double()
+    intrinsics = torch.tensor([loaded.intrinsics])
+    pixels, _ = project(point, torch.tensor(loaded.camera_to_world[None]), intrinsics)
+    u, v = pixels[0, 0].numpy()
+    assert math.hypot(u - pixel[1] - 0.5, v - pixel[0] - 0.5) > 5.0  # distortion moves it: the test means something
+    assert loaded.mask[int(v), int(u)], "the undistorted mask covers the pinhole projection of the traced point"
+    centroid_v, centroid_u = np.argwhere(loaded.mask).mean(axis=0) + 0.5
+    assert math.hypot(centroid_u - u, centroid_v - v) < 1.0
+    assert (loaded.fl_x, loaded.fl_y, loaded.cx, loaded.cy) == (FOCAL, FOCAL, CX, CY)  # same intrinsics, pinhole
+
+
+def test_zero_distortion_loads_as_before(tmp_path, rng):
+    folder, photo = _distorted_set(tmp_path, rng, (0.0,) * 6, (20, 130), camera_model="OPENCV")
+    np.testing.assert_array_equal(load_sketch_set(folder).views[0].mask, photo.mask)
+    _edit_json(folder, lambda meta: meta["views"][0].update(distortion_params=[0.0] * 6))
+    np.testing.assert_array_equal(load_sketch_set(folder).views[0].mask, photo.mask)
+
+
+def test_distortion_params_list_is_read_like_nerfstudio(tmp_path, rng):
+    coefficients = (-0.3, 0.05, -0.01, 0.002, 0.004, -0.006)
+    folder, photo = _distorted_set(tmp_path, rng, coefficients, (20, 130))
+    by_fields = load_sketch_set(folder).views[0].mask
+    assert not np.array_equal(by_fields, photo.mask)
+    _edit_json(folder, lambda meta: [meta["views"][0].pop(key) for key in ("k1", "k2", "k3", "k4", "p1", "p2")]
+               and meta["views"][0].update(distortion_params=list(coefficients)))
+    np.testing.assert_array_equal(load_sketch_set(folder).views[0].mask, by_fields)
+
+
+def test_saving_a_distorted_set_keeps_what_was_loaded(tmp_path, rng):
+    folder, _ = _distorted_set(tmp_path, rng, (-0.3, 0.05, -0.01, 0.002, 0.004, -0.006), (20, 130))
+    loaded = load_sketch_set(folder)
+    again = load_sketch_set(save_sketch_set(loaded, tmp_path / "copy").parent)
+    for view, copy in zip(loaded.views, again.views):
+        np.testing.assert_array_equal(view.mask, copy.mask)  # saved undistorted: loading it again changes nothing
+        np.testing.assert_allclose(view.camera_to_world, copy.camera_to_world, atol=1e-12)
+        assert (view.fl_x, view.fl_y, view.cx, view.cy) == (copy.fl_x, copy.fl_y, copy.cx, copy.cy)
+
+
+@pytest.mark.parametrize("where", ["view", "set"])
+def test_a_non_perspective_camera_model_is_refused(tmp_path, rng, where):
+    folder, _ = _distorted_set(tmp_path, rng, (0.1, 0.0, 0.0, 0.0, 0.0, 0.0), (20, 130))
+    if where == "view":
+        _edit_json(folder, lambda meta: meta["views"][0].update(camera_model="OPENCV_FISHEYE"))
+    else:
+        _edit_json(folder, lambda meta: meta.update(camera_model="OPENCV_FISHEYE"))
+    with pytest.raises(ValueError, match=r"sketches.json views\[0\].*'camera_model' 'OPENCV_FISHEYE'.*undistorted"):
+        load_sketch_set(folder)
+
+
+@pytest.mark.parametrize("change, message", [
+    (lambda view: view.update(k1="strong"), r"views\[0\].*'k1' must be a number"),
+    (lambda view: view.update(distortion_params=[0.1, 0.0]), r"views\[0\].*'distortion_params' must be 6 finite"),
+    (lambda view: view.update(k1=1e6), r"view_00.png.*empty once the lens distortion.*views\[0\]"),
+], ids=["not-a-number", "short-list", "mask-outside-the-pinhole-view"])
+def test_bad_distortion_names_the_view_and_field(tmp_path, rng, change, message):
+    folder, _ = _distorted_set(tmp_path, rng, (0.0,) * 6, (20, 130))
+    _edit_json(folder, lambda meta: change(meta["views"][0]))
+    with pytest.raises(ValueError, match=message):
+        load_sketch_set(folder)
+
+
+def test_a_mask_that_cannot_be_written_is_an_error(tmp_path, rng):
+    (tmp_path / "set" / "masks" / "view_01.png").mkdir(parents=True)  # a folder where the PNG should go
+    with pytest.raises(OSError, match=r"view_01.png.*could not write"):
+        save_sketch_set(SketchSet(views=[random_view(rng, 8, 8), random_view(rng, 8, 8)]), tmp_path / "set")

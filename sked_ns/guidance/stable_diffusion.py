@@ -13,7 +13,7 @@ import gc
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Dict, Optional, Tuple, Type
+from typing import Dict, Literal, Optional, Tuple, Type, get_args
 
 import torch
 import torch.nn.functional as F
@@ -23,8 +23,24 @@ from sked_ns.guidance.base import Guidance, GuidanceConfig, RenderedView
 from sked_ns.random_views import DIRECTIONS
 
 
+SdsWeighting = Literal["authors", "dreamfusion"]
+SDS_WEIGHTINGS = get_args(SdsWeighting)
+
+
 class DiffusionWeightsMissing(FileNotFoundError):
     """The diffusion model's weights are not available where we may look."""
+
+
+def sds_weight(alphas_cumprod: Tensor, weighting: str) -> Tensor:
+    """w(t) of the SDS gradient w(t) (eps_hat - eps), from alpha_bar_t (see the config's `weighting`)."""
+    if weighting == "authors":
+        return alphas_cumprod.sqrt() * (1 - alphas_cumprod)
+    if weighting == "dreamfusion":
+        return 1 - alphas_cumprod
+    raise ValueError(
+        f"StableDiffusionGuidanceConfig.weighting: unknown SDS weighting {weighting!r}; use one of {SDS_WEIGHTINGS} "
+        "(--pipeline.model.sds.weighting)."
+    )
 
 
 @dataclass
@@ -38,6 +54,10 @@ class StableDiffusionGuidanceConfig(GuidanceConfig):
     """Classifier-free guidance scale (DreamFusion uses 100)."""
     t_range: Tuple[float, float] = (0.02, 0.98)
     """Diffusion timesteps sampled, as fractions of the schedule (t in [20, 980] of 1000)."""
+    weighting: SdsWeighting = "authors"
+    """w(t) in the SDS gradient w(t) (eps_hat - eps): "authors" = sqrt(alpha_bar_t) (1 - alpha_bar_t), the SKED
+    code's, with which the default lambdas were tuned; "dreamfusion" = 1 - alpha_bar_t (with SD's schedule 2.6x the
+    mean weight over t in [20, 980], 13x at t = 980)."""
     image_size: int = 512
     """Renders are resized to this before the VAE (SD's native 512)."""
     directional_prompts: bool = True
@@ -98,6 +118,7 @@ class StableDiffusionGuidance(Guidance):
     def prepare(self, prompt: Optional[str], device: str, context: Dict) -> None:
         if not prompt or not prompt.strip():
             raise ValueError("Score distillation needs a text prompt: pass --prompt \"...\" (or carve with no guidance).")
+        sds_weight(torch.zeros(1), self.config.weighting)  # a bad weighting fails before any weights load
         from diffusers import AutoencoderKL, DDPMScheduler, UNet2DConditionModel
         from transformers import CLIPTextModel, CLIPTokenizer
 
@@ -130,16 +151,23 @@ class StableDiffusionGuidance(Guidance):
         self.num_train_timesteps = int(scheduler.config.num_train_timesteps)
         self.scheduler = scheduler
         self._unet_forward = self.unet.forward
-        self._encode = lambda x: self.vae.encode(x).latent_dist.mean
+        self._encode = self._posterior
         if self.config.compile and self.device.type == "cuda":
             self._unet_forward = torch.compile(self.unet.forward)
             self._encode = torch.compile(self._encode)
 
+    def _posterior(self, image: Tensor) -> Tuple[Tensor, Tensor]:
+        """Mean and standard deviation of the VAE's latent distribution (tensors only: compiles whole)."""
+        posterior = self.vae.encode(image).latent_dist
+        return posterior.mean, posterior.std
+
     def encode(self, image: Tensor) -> Tensor:
-        """[0, 1] images -> scaled latents; gradients flow through the encoder."""
+        """[0, 1] images -> scaled latents sampled from the VAE posterior; gradients flow through the encoder."""
         size = self.config.image_size
         image = F.interpolate(image, (size, size), mode="bilinear", align_corners=False)
-        latents = self._encode((image * 2 - 1).to(self.dtype))
+        mean, std = self._encode((image * 2 - 1).to(self.dtype))
+        # A sample, not the mean: the authors' code encodes with latent_dist.sample().
+        latents = mean + std * torch.randn_like(mean)
         return latents.float() * float(self.vae.config.scaling_factor)
 
     def __call__(self, view: RenderedView, step: int) -> Dict[str, Tensor]:
@@ -155,7 +183,7 @@ class StableDiffusionGuidance(Guidance):
             predicted = self._unet_forward(torch.cat([noisy] * 2), torch.cat([t] * 2), encoder_hidden_states=context).sample
             unconditional, text = predicted.float().chunk(2)
             guided = unconditional + self.config.guidance_scale * (text - unconditional)
-            weight = (1 - self.alphas_cumprod[t]).view(-1, 1, 1, 1)  # w(t) = 1 - alpha_bar_t
+            weight = sds_weight(self.alphas_cumprod[t], self.config.weighting).view(-1, 1, 1, 1)
             gradient = torch.nan_to_num(weight * (guided - noise), nan=0.0, posinf=0.0, neginf=0.0)
             target = latents - gradient
         # d loss / d latents = gradient, without back-propagating through the UNet.
