@@ -109,8 +109,8 @@ def test_interrupted_edit_resumes_from_its_last_checkpoint(scene, tmp_path):
     trainer.setup()
     assert trainer._start_step == 21
     saved = torch.load(interrupted / "nerfstudio_models" / "step-000000020.ckpt", map_location="cpu")
-    for key, value in trainer.pipeline.state_dict().items():
-        assert torch.equal(value, saved["pipeline"][key]), key
+    for key, value in trainer.pipeline.state_dict().items():  # weights, and the model's extra state (SKED's step)
+        assert torch.equal(value, saved["pipeline"][key]) if torch.is_tensor(value) else value == saved["pipeline"][key], key
     for name, optimizer in trainer.optimizers.optimizers.items():
         state = optimizer.state_dict()["state"]
         assert state and all(torch.equal(s["exp_avg"], saved["optimizers"][name]["state"][k]["exp_avg"]) for k, s in state.items())
