@@ -7,25 +7,60 @@ only ever read.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import copy
+from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import Dict, Optional
 
 import numpy as np
 import torch
 import yaml
+from nerfstudio.models.instant_ngp import InstantNGPModelConfig
+from nerfstudio.models.nerfacto import NerfactoModelConfig
 from torch import Tensor
 
 from sked_ns.sketches import DataparserTransform
 
-SUPPORTED_METHODS = {
-    "nerfacto": "nerfacto",
-    "nerfacto-big": "nerfacto",
-    "nerfacto-huge": "nerfacto",
-    "instant-ngp": "instant-ngp",
-    "instant-ngp-bounded": "instant-ngp",
-    "sked": "sked",  # an edited scene: resume it, or edit it again (progressive editing)
-}
+# What the edit decides, not the base; every other field of the base's model config is copied (its architecture).
+EDIT_OWNED_FIELDS = frozenset({
+    "_target",  # the SKED model class
+    "prompt",  # nerfstudio's ModelConfig has one too: the edit's prompt is SKED's
+    "eval_num_rays_per_chunk",  # a rendering setting of this run
+    # the edit's own losses
+    "loss_coefficients", "interlevel_loss_mult", "distortion_loss_mult", "orientation_loss_mult", "pred_normal_loss_mult",
+    # schedules of training from scratch: an edit starts from trained proposals (its anneal stays 1)
+    "proposal_update_every", "proposal_warmup", "use_proposal_weight_anneal", "proposal_weights_anneal_slope",
+    "proposal_weights_anneal_max_num_iters",
+    "camera_optimizer",  # the edit keeps the base's cameras; the base's mode goes to base_camera_optimizer
+    "edit_box_density", "grid_update_interval",  # SKED's sampling of the edit box
+})
+
+
+def base_family(model_config) -> Optional[str]:
+    """nerfacto, instant-ngp or sked (an earlier edit), by the config's type: nerfacto-big and -huge runs
+    save method_name "nerfacto", and any nerfacto- or instant-ngp-style config has the field SKED edits."""
+    from sked_ns.sked_core import SkedOptions  # sked_core reads checkpoints through this module
+
+    if isinstance(model_config, SkedOptions):
+        return "sked"
+    if isinstance(model_config, InstantNGPModelConfig):
+        return "instant-ngp"
+    if isinstance(model_config, NerfactoModelConfig):
+        return "nerfacto"
+    return None
+
+
+def copy_base_architecture(target, base_model_config) -> None:
+    """Make the edit's model the base's shape: every field of the base's model config but the edit's own."""
+    from sked_ns.sked_core import SkedOptions
+
+    owned = EDIT_OWNED_FIELDS | {option.name for option in fields(SkedOptions)}
+    ours = {f.name for f in fields(target)}
+    for name in (f.name for f in fields(base_model_config)):
+        if name in ours and name not in owned:
+            setattr(target, name, copy.deepcopy(getattr(base_model_config, name)))
+    cameras = getattr(base_model_config, "camera_optimizer", None)
+    target.base_camera_optimizer = getattr(cameras, "mode", "off") if cameras is not None else "off"
 
 
 @dataclass(frozen=True)
@@ -46,7 +81,7 @@ class BaseScene:
     @property
     def family(self) -> str:
         """nerfacto, instant-ngp or sked."""
-        return SUPPORTED_METHODS[self.method]
+        return base_family(self.model_config)
 
     @property
     def model_config(self):
@@ -89,13 +124,13 @@ def resolve_base(load_dir: Path, step: Optional[int] = None) -> BaseScene:
         checkpoint = _latest_checkpoint(models_dir, step)
     try:
         config = yaml.load(config_path.read_text(), Loader=yaml.Loader)
-        method = config.method_name
+        method, model_config = config.method_name, config.pipeline.model
     except Exception as error:  # yaml of nerfstudio configs imports arbitrary modules
         raise ValueError(f"{config_path}: cannot read this nerfstudio config ({error}).") from error
-    if method not in SUPPORTED_METHODS:
+    if base_family(model_config) is None:
         raise ValueError(
-            f"{config_path}: the base was trained with '{method}'; sked edits "
-            f"{', '.join(sorted(m for m in SUPPORTED_METHODS if m != 'sked'))} scenes (a NerfactoField)."
+            f"{config_path}: the base was trained with '{method}' ({type(model_config).__name__}); sked edits "
+            "nerfacto (also -big, -huge) and instant-ngp (also -bounded) scenes, and its own edits."
         )
     return BaseScene(run_dir=run_dir, checkpoint=checkpoint, config=config)
 

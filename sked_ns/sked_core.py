@@ -13,7 +13,6 @@ weight prefixes its base checkpoint must provide.
 from __future__ import annotations
 
 import contextlib
-import copy
 import dataclasses
 import math
 import warnings
@@ -31,6 +30,7 @@ from torch import Tensor
 
 from sked_ns.base_scene import read_model_state, uses_tcnn
 from sked_ns.edit_box import EditBox, compute_edit_box
+from sked_ns.frozen_base import FrozenBase
 from sked_ns.guidance import Guidance, ReferenceGuidanceConfig, RenderedView, StableDiffusionGuidanceConfig
 from sked_ns.losses import occupancy_log_probabilities, preservation_loss, silhouette_loss, sparsity_loss
 from sked_ns.photo_anchor import anchor_rays, correct_poses, editable_box, rays_away_from_edit
@@ -130,10 +130,9 @@ class SkedMixin:
     def _setup_sked(self) -> None:
         """Call after the parent's populate_modules."""
         self.lpips = None
-        sketch_set: Optional[SketchSet] = self.kwargs.get("sketch_set")
-        if sketch_set is None:
-            raise ValueError("SKED needs a sketch set: pass --sketches <folder with sketches.json>.")
-        self.sketch_set = sketch_set
+        from sked_ns.sked_datamanager import model_frame_sketches
+
+        self.sketch_set = sketch_set = model_frame_sketches(self.config.sketches, self.kwargs.get("metadata") or {})
         self.edit_box: EditBox = compute_edit_box(sketch_set.views, scene_box=self.scene_box.aabb.numpy())
         self.sketch_field = SketchDistanceField(
             sketch_set.views, compile=self.config.compile_lookup and torch.cuda.is_available()
@@ -217,18 +216,19 @@ class SkedMixin:
         optimizer.load_state_dict({"pose_adjustment": adjustment})
         return [optimizer.eval().requires_grad_(False)]
 
-    def _freeze_base(self, *modules: torch.nn.Module) -> None:
-        # A list hides the frozen base from the module tree, and so from optimisers and checkpoints.
-        self._base = [copy.deepcopy(module).eval().requires_grad_(False) for module in modules]
+    def _freeze_base(self, **modules: torch.nn.Module) -> None:
+        # A dataclass (not a module) hides the frozen base from the module tree, so from optimisers and checkpoints.
+        self.frozen_base = FrozenBase.copy_of(**modules)
 
     @property
     def base_field(self):
-        return self._base[0]
+        return self.frozen_base.field
 
     def _apply(self, fn, *args, **kwargs):
         # `.to()`, `.cuda()`, `.half()` reach the hidden base too.
         super()._apply(fn, *args, **kwargs)
-        for module in getattr(self, "_base", []) + getattr(self, "_base_cameras", []):
+        frozen = self.frozen_base.modules() if getattr(self, "frozen_base", None) is not None else []
+        for module in frozen + getattr(self, "_base_cameras", []):
             module._apply(fn, *args, **kwargs)
         return self
 
@@ -459,9 +459,3 @@ def warn_degenerate_settings(config: SkedOptions, sketch_set: SketchSet) -> List
 class SkedSettingsWarning(UserWarning):
     """A setting that runs but defeats the method."""
 
-
-def copy_architecture(target, base_model_config, names: Sequence[str]) -> None:
-    """Make the edit's modules the base's shape (hash grids, MLPs, samplers)."""
-    for name in names:
-        if hasattr(base_model_config, name):
-            setattr(target, name, copy.deepcopy(getattr(base_model_config, name)))

@@ -9,7 +9,8 @@ sketch views, rendered every iteration at reduced resolution for L_sil.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Dict, Tuple, Type
+from pathlib import Path
+from typing import Dict, Optional, Tuple, Type
 
 import cv2
 import numpy as np
@@ -20,7 +21,7 @@ from nerfstudio.data.datamanagers.base_datamanager import VanillaDataManager, Va
 
 from sked_ns.edit_box import EditBox
 from sked_ns.random_views import ELEVATION_RANGE_DEG, FOV_RANGE_DEG, RandomViewSampler, focal_from_fov
-from sked_ns.sketches import DataparserTransform, SketchSet, SketchView
+from sked_ns.sketches import DataparserTransform, SketchSet, SketchView, load_sketch_set
 
 
 @dataclass
@@ -62,8 +63,26 @@ def sketch_view_at(view: SketchView, resolution: int) -> Tuple[Cameras, torch.Te
     return camera, torch.from_numpy(mask)
 
 
+SKETCH_FRAME = "sked_dataparser_transform"
+"""Dataset metadata key: the data -> model frame, which the model reads to load the sketch set."""
+
+
+def model_frame_sketches(sketches: Optional[Path], metadata: Dict) -> SketchSet:
+    """The sketch set in the model's frame; `metadata` is the train dataset's, as nerfstudio hands it to the model."""
+    if sketches is None:
+        raise ValueError("SKED needs a sketch set: pass --sketches <folder with sketches.json>.")
+    if SKETCH_FRAME not in metadata:
+        raise ValueError("A SKED model is set up by SkedPipeline with a SkedDataManager (they know the data's frame).")
+    return load_sketch_set(sketches).in_model_frame(metadata[SKETCH_FRAME])
+
+
 class SkedDataManager(VanillaDataManager):
     config: SkedDataManagerConfig
+
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        # nerfstudio hands the train dataset's metadata to the model: the sketch set needs this frame.
+        self.train_dataset.metadata[SKETCH_FRAME] = self.dataparser_transform
 
     @property
     def dataparser_transform(self) -> DataparserTransform:

@@ -21,25 +21,14 @@ from sked_ns.sked_core import (  # noqa: F401  (re-exported: the public names of
     SkedMixin,
     SkedOptions,
     SkedSettingsWarning,
-    copy_architecture,
     warn_degenerate_settings,
     without_lpips as _without_lpips,
-)
-
-# Architecture of the base that the edit must share to load its weights.
-ARCHITECTURE_FIELDS = (
-    "hidden_dim", "hidden_dim_color", "hidden_dim_transient", "num_levels", "base_res", "max_res",
-    "log2_hashmap_size", "features_per_level", "num_proposal_iterations", "num_proposal_samples_per_ray",
-    "num_nerf_samples_per_ray", "proposal_net_args_list", "use_same_proposal_network", "use_appearance_embedding",
-    "appearance_embed_dim", "use_average_appearance_embedding", "disable_scene_contraction", "predict_normals",
-    "implementation", "background_color", "near_plane", "far_plane", "proposal_initial_sampler",
-    "average_init_density", "use_single_jitter",
 )
 
 
 @dataclass
 class SkedModelConfig(NerfactoModelConfig, SkedOptions):
-    """SKED on a nerfacto-style field. Architecture fields are copied from the base."""
+    """SKED on a nerfacto-style field. Architecture fields are copied from the base (base_scene.copy_base_architecture)."""
 
     _target: Type = field(default_factory=lambda: SkedModel)
     edit_box_density: float = 2.0
@@ -66,14 +55,14 @@ class SkedModel(SkedMixin, NerfactoModel):
             super().populate_modules()
         self._setup_sked()
         self._load_base_weights()
-        self._freeze_base(self.field, self.proposal_networks)
+        self._freeze_base(field=self.field, proposal_networks=self.proposal_networks)
         self._boost_proposals_in_edit_box()
 
     @torch.no_grad()
     def render_base(self, ray_bundle: RayBundle) -> Dict[str, Tensor]:
         """The frozen base seen along `ray_bundle` (already collided), with its own proposal networks."""
-        base_field, base_proposals = self._base
-        outputs, samples, _, weights = self._render_with(ray_bundle, base_field, [p.density_fn for p in base_proposals])
+        base = self.frozen_base
+        outputs, samples, _, weights = self._render_with(ray_bundle, base.field, [p.density_fn for p in base.proposal_networks])
         outputs["preservation_weight"] = self.expected_preservation(samples.frustums.get_positions(), weights,
                                                                     outputs["accumulation"])
         return {key: value for key, value in outputs.items() if key not in ("weights_list", "ray_samples_list")}
@@ -170,9 +159,3 @@ class SkedModel(SkedMixin, NerfactoModel):
                                                                     outputs["accumulation"])
         return self._steer(ray_bundle, outputs)
 
-
-def copy_base_architecture(target: SkedModelConfig, base_model_config) -> None:
-    """Make the edit's field the base's shape (hash grids, MLPs, proposal networks)."""
-    copy_architecture(target, base_model_config, ARCHITECTURE_FIELDS)
-    cameras = getattr(base_model_config, "camera_optimizer", None)
-    target.base_camera_optimizer = getattr(cameras, "mode", "off") if cameras is not None else "off"

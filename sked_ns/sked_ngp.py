@@ -24,18 +24,12 @@ from torch.nn import Parameter
 from sked_ns.edit_box import occupancy_grid_mask
 from sked_ns.occupancy import PortableOccGridEstimator, render_weights
 from sked_ns.preservation import check_beta
-from sked_ns.sked_core import SkedMixin, SkedOptions, copy_architecture, without_lpips
-
-NGP_ARCHITECTURE_FIELDS = (
-    "grid_resolution", "grid_levels", "max_res", "log2_hashmap_size", "alpha_thre", "cone_angle",
-    "render_step_size", "near_plane", "far_plane", "use_gradient_scaling", "use_appearance_embedding",
-    "background_color", "disable_scene_contraction",
-)
+from sked_ns.sked_core import SkedMixin, SkedOptions, without_lpips
 
 
 @dataclass
 class SkedNGPModelConfig(InstantNGPModelConfig, SkedOptions):
-    """SKED on an instant-ngp field. Architecture fields are copied from the base."""
+    """SKED on an instant-ngp field. Architecture fields are copied from the base (base_scene.copy_base_architecture)."""
 
     _target: Type = field(default_factory=lambda: SkedNGPModel)
     grid_update_interval: int = 16
@@ -61,9 +55,10 @@ class SkedNGPModel(SkedMixin, NGPModel):
         self.sampler = VolumetricSampler(occupancy_grid=self.occupancy_grid, density_fn=self.field.density_fn)
         self._setup_sked()
         self._load_base_weights()
-        self._freeze_base(self.field, self.occupancy_grid)
+        self._freeze_base(field=self.field, occupancy_grid=self.occupancy_grid)
         # The base's own sampler: its grid and its density (culling empty and hidden samples, as the base renders).
-        self._base.append(VolumetricSampler(occupancy_grid=self._base[1], density_fn=self._base[0].density_fn))
+        base = self.frozen_base
+        self.frozen_base = base.with_sampler(VolumetricSampler(occupancy_grid=base.occupancy_grid, density_fn=base.field.density_fn))
         resolution = self.occupancy_grid.resolution.tolist()
         cells = occupancy_grid_mask(self.edit_box, self.scene_aabb.tolist(), resolution, self.config.grid_levels)
         cells = self._hull_cells(cells)
@@ -152,8 +147,8 @@ class SkedNGPModel(SkedMixin, NGPModel):
 
     @torch.no_grad()
     def render_base(self, ray_bundle: RayBundle) -> Dict[str, Tensor]:
-        base_field, _, base_sampler = self._base
-        outputs, samples, _ = self._render_with(ray_bundle, base_field, base_sampler, self.config.alpha_thre)
+        base = self.frozen_base
+        outputs, samples, _ = self._render_with(ray_bundle, base.field, base.sampler, self.config.alpha_thre)
         return self._with_preservation(outputs, samples)
 
     def get_outputs(self, ray_bundle: RayBundle):
@@ -168,7 +163,3 @@ class SkedNGPModel(SkedMixin, NGPModel):
             samples.frustums.get_positions(), weights, outputs["accumulation"], ray_indices=ray_indices)
         return outputs
 
-
-def copy_ngp_architecture(target: SkedNGPModelConfig, base_model_config) -> None:
-    """Make the edit's field and grid the base's shape."""
-    copy_architecture(target, base_model_config, NGP_ARCHITECTURE_FIELDS)

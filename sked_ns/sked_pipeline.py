@@ -1,4 +1,11 @@
-"""Pipeline: loads the sketch set once and hands it to the datamanager and the model."""
+"""Pipeline: nerfstudio's VanillaPipeline, with the model's sketch set handed to the datamanager.
+
+The datamanager is set up first and tells the model the data's frame (dataset metadata); the
+model loads the sketch set in that frame; this pipeline then checks the base's frame and gives
+the datamanager the same sketch set. Devices are VanillaPipeline's business: in nerfstudio 1.1.5
+it moves the datamanager (an nn.Module there), on main the datamanager keeps its own device
+(`compat.datamanager_is_module`).
+"""
 
 from __future__ import annotations
 
@@ -6,13 +13,12 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal, Optional, Type
 
-from nerfstudio.pipelines.base_pipeline import Pipeline, VanillaPipeline, VanillaPipelineConfig
+from nerfstudio.pipelines.base_pipeline import VanillaPipeline, VanillaPipelineConfig
 from torch.cuda.amp.grad_scaler import GradScaler
 
 from sked_ns.base_scene import check_same_frame, resolve_base
 from sked_ns.sked_datamanager import SkedDataManagerConfig
 from sked_ns.sked_model import SkedModelConfig
-from sked_ns.sketches import load_sketch_set
 
 
 @dataclass
@@ -34,28 +40,17 @@ class SkedPipeline(VanillaPipeline):
         local_rank: int = 0,
         grad_scaler: Optional[GradScaler] = None,
     ):
-        Pipeline.__init__(self)
-        self.config = config
-        self.test_mode = test_mode
-        self.world_size = world_size
-        self.datamanager = config.datamanager.setup(device=device, test_mode=test_mode, world_size=world_size, local_rank=local_rank)
-        self.datamanager.to(device)
-        if config.model.sketches is None:
+        refuse_multi_device(world_size)
+        if config.model.sketches is None:  # before any data is read
             raise ValueError("SKED needs a sketch set: pass --sketches <folder with sketches.json>.")
-        sketch_set = load_sketch_set(config.model.sketches).in_model_frame(self.datamanager.dataparser_transform)
-        self._model = config.model.setup(
-            scene_box=self.datamanager.train_dataset.scene_box,
-            num_train_data=len(self.datamanager.train_dataset),
-            metadata=self.datamanager.train_dataset.metadata,
-            device=device,
-            grad_scaler=grad_scaler,
-            sketch_set=sketch_set,
-        )
+        # nerfstudio's set-up; the model loads the sketch set in the data's frame (model_frame_sketches).
+        super().__init__(config, device, test_mode=test_mode, world_size=world_size, local_rank=local_rank,
+                         grad_scaler=grad_scaler)
         if config.model.base_checkpoint is not None:  # after the model's own checks (image count is clearer)
             check_same_frame(resolve_base(Path(config.model.base_checkpoint)), self.datamanager.dataparser_transform)
-        self.model.to(device)
+        # The same sketch set, loaded once, for the sketch views and random views.
         self.datamanager.attach_sketches(
-            sketch_set, self.model.edit_box, config.model.silhouette_resolution, config.model.guidance_resolution
+            self.model.sketch_set, self.model.edit_box, config.model.silhouette_resolution, config.model.guidance_resolution
         )
         self._guidance_ready = False
 
@@ -78,4 +73,13 @@ class SkedPipeline(VanillaPipeline):
         return self.model.get_sked_loss_dict(
             data["random_view"], data["random_camera"], data["sketch_rays"], data["sketch_masks"], step,
             photo=data.get("photo"),
+        )
+
+
+def refuse_multi_device(world_size: int) -> None:
+    """SKED's step renders through the model directly (not DDP's forward), so gradients would not be synced."""
+    if world_size > 1:
+        raise ValueError(
+            f"SKED edits on one device, but this run has {world_size} processes (--machine.num-devices x "
+            "--machine.num-machines). Run with --machine.num-devices 1 --machine.num-machines 1."
         )

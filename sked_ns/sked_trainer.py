@@ -9,7 +9,7 @@ earlier SKED run resumes it; add `--progressive True` to edit that result again 
 
 from __future__ import annotations
 
-import functools
+import contextlib
 from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Optional, Type
@@ -19,10 +19,12 @@ from nerfstudio.engine.trainer import Trainer, TrainerConfig
 from nerfstudio.models.instant_ngp import InstantNGPModelConfig
 from nerfstudio.utils.rich_utils import CONSOLE
 
-from sked_ns.base_scene import resolve_base
+from sked_ns.base_scene import copy_base_architecture, resolve_base
+from sked_ns.compat import train_loop_adds_start_step
+from sked_ns.safe_step import GuardedGradScaler, GuardedOptimizers, StepGuard
 from sked_ns.sked_core import SkedOptions
-from sked_ns.sked_model import SkedModelConfig, copy_base_architecture
-from sked_ns.sked_ngp import SkedNGPModelConfig, copy_ngp_architecture
+from sked_ns.sked_model import SkedModelConfig
+from sked_ns.sked_ngp import SkedNGPModelConfig
 
 
 @dataclass
@@ -75,15 +77,18 @@ def edit_model_config(model, base_model_config):
     if not isinstance(model, wanted):
         options = {option.name: getattr(model, option.name) for option in fields(SkedOptions)}
         model = wanted(**options, eval_num_rays_per_chunk=model.eval_num_rays_per_chunk)
-    if wanted is SkedNGPModelConfig:
-        copy_ngp_architecture(model, base_model_config)
-    else:
-        copy_base_architecture(model, base_model_config)
+    copy_base_architecture(model, base_model_config)
     return model
 
 
 class SkedTrainer(Trainer):
     config: SkedTrainerConfig
+
+    def __init__(self, config: SkedTrainerConfig, local_rank: int = 0, world_size: int = 1) -> None:
+        super().__init__(config, local_rank=local_rank, world_size=world_size)
+        self.step_guard = StepGuard(lambda: self.pipeline.model.parameters())
+        # Before setup, so the pipeline gets it too: never backpropagates or applies a non-finite value.
+        self.grad_scaler = GuardedGradScaler(self.step_guard, enabled=self.grad_scaler.is_enabled())
 
     def setup(self, test_mode="val") -> None:
         resolve_edit(self.config)
@@ -114,31 +119,24 @@ class SkedTrainer(Trainer):
         super()._load_checkpoint()
 
     def train(self) -> None:
-        # nerfstudio runs max_num_iterations more steps after a resume; an edit's length is its total.
-        self.config.max_num_iterations = max(self.config.max_num_iterations - self._start_step, 1)
+        # An edit's length is its total: nerfstudio 1.1.5 would run max_num_iterations more steps after a resume.
+        if train_loop_adds_start_step():
+            self.config.max_num_iterations = max(self.config.max_num_iterations - self._start_step, 1)
         super().train()
 
+    def setup_optimizers(self) -> GuardedOptimizers:
+        return GuardedOptimizers(super().setup_optimizers(), self.step_guard)
+
     def train_iteration(self, step: int):
-        """nerfstudio's iteration, except that a non-finite loss skips the update with a warning."""
-        self.optimizers.zero_grad_all()
+        """nerfstudio's iteration under the step guard: a non-finite loss or gradient skips the update."""
+        self.step_guard.start()
         device_type = "cpu" if self.device.split(":")[0] in ("cpu", "mps") else self.device.split(":")[0]
-        with torch.autocast(device_type=device_type, dtype=self.autocast_dtype, enabled=self.mixed_precision):
-            _, loss_dict, metrics_dict = self.pipeline.get_train_loss_dict(step=step)
-            loss = functools.reduce(torch.add, loss_dict.values())
-        if not torch.isfinite(loss):
-            self._skip(step, [name for name, value in loss_dict.items() if not torch.isfinite(value)])
-            return loss.detach(), loss_dict, metrics_dict
-        self.grad_scaler.scale(loss).backward()
-        # The grad scaler skips non-finite steps itself; without it, check every gradient with one sync.
-        if not self.grad_scaler.is_enabled() and not _all_finite(self.pipeline.model.parameters()):
-            self.optimizers.zero_grad_all()
-            self._skip(step, ["gradients"])
-            return loss.detach(), loss_dict, metrics_dict
-        self.optimizers.optimizer_scaler_step_all(self.grad_scaler)
-        scale = self.grad_scaler.get_scale()
-        self.grad_scaler.update()
-        if scale <= self.grad_scaler.get_scale():  # no step was skipped by the scaler
-            self.optimizers.scheduler_step_all(step)
+        with default_autocast_dtype(device_type, self.autocast_dtype):
+            loss, loss_dict, metrics_dict = super().train_iteration(step)
+        if self.step_guard.reason == "loss":
+            self._skip(step, [name for name, value in loss_dict.items() if not torch.isfinite(value).all()] or ["loss"])
+        elif self.step_guard.skipped:
+            self._skip(step, [self.step_guard.reason])
         metrics_dict["skipped_steps"] = torch.tensor(float(self.skipped_steps))
         return loss, loss_dict, metrics_dict
 
@@ -155,6 +153,12 @@ class SkedTrainer(Trainer):
         super().save_checkpoint(step)
 
 
-def _all_finite(parameters) -> bool:
-    gradients = [p.grad for p in parameters if p.grad is not None]
-    return not gradients or bool(torch.stack([torch.isfinite(g).all() for g in gradients]).all())
+@contextlib.contextmanager
+def default_autocast_dtype(device_type: str, dtype: torch.dtype):
+    """nerfstudio's autocast takes the device's default dtype: make it SKED's for one iteration."""
+    previous = torch.get_autocast_dtype(device_type)
+    torch.set_autocast_dtype(device_type, dtype)
+    try:
+        yield
+    finally:
+        torch.set_autocast_dtype(device_type, previous)

@@ -50,7 +50,7 @@ def test_ngp_edit_starts_from_the_base_with_the_edit_box_switched_on(ngp_scene, 
     grid = model.occupancy_grid.binaries
     assert torch.equal(grid, base_cells | model.edit_box_cells)
     assert model.edit_box_cells.sum() > 0 and (model.edit_box_cells & ~base_cells).any(), "the hat's cells are new"
-    assert torch.equal(model._base[1].binaries, base_cells), "the frozen grid is the base's"
+    assert torch.equal(model.frozen_base.occupancy_grid.binaries, base_cells), "the frozen grid is the base's"
     # The edit renders the base too, up to the faint density the base field has in the new cells.
     view = model.sketch_set.views[0]
     edit, frozen = render_at(model, view, 32), render_base_at(model, view, 32)
@@ -93,7 +93,7 @@ def test_ngp_base_untouched_and_frozen(ngp_scene, ngp_edited):
     base = read_model_state(model.config.base_checkpoint)
     for key, value in model.base_field.state_dict().items():
         assert torch.equal(value.cpu(), base[f"field.{key}"]), key
-    assert not any(key.startswith("_base") for key in model.state_dict())
+    assert not any(key.startswith(("_base", "frozen_base")) for key in model.state_dict())
 
 
 def test_ngp_edit_outputs_preservation_weight_and_resumes(ngp_scene, ngp_edited, tmp_path):

@@ -76,7 +76,7 @@ def test_ngp_training_renders_keep_the_empty_edit_box_samples(ngp_scene, tmp_pat
 
 def test_ngp_base_renders_deterministically_with_its_own_density(ngp_scene, tmp_path):
     model = _pipeline(ngp_scene, tmp_path).model.eval()
-    base_sampler = model._base[2]
+    base_sampler = model.frozen_base.sampler
     assert base_sampler.density_fn is not None, "the base's sampler culls with the base's density in training"
     rays = model._collide(_sketch_rays(model))
     first, second = model.render_base(rays), model.render_base(rays)

@@ -1,0 +1,165 @@
+"""The nerfstudio glue without a scene: nerfstudio's own training iteration under SKED's step guard,
+the version layer (compat), refused settings, and how a base's model config becomes the edit's."""
+
+from __future__ import annotations
+
+import types
+
+import pytest
+import torch
+import yaml
+from nerfstudio.configs.method_configs import method_configs
+from nerfstudio.engine.optimizers import AdamOptimizerConfig
+from nerfstudio.engine.schedulers import ExponentialDecaySchedulerConfig
+from nerfstudio.engine.trainer import Trainer
+from nerfstudio.models.nerfacto import NerfactoModelConfig
+
+from sked_ns import compat
+from sked_ns.base_scene import base_family, copy_base_architecture, resolve_base
+from sked_ns.sked_datamanager import SkedDataManager
+from sked_ns.sked_model import SkedModelConfig
+from sked_ns.sked_ngp import SkedNGPModelConfig
+from sked_ns.sked_pipeline import SkedPipeline, SkedPipelineConfig
+from sked_ns.sked_trainer import SkedTrainer, SkedTrainerConfig
+
+
+class ToyPipeline(torch.nn.Module):
+    """One weight vector and a loss chosen by the test: enough for nerfstudio's train_iteration."""
+
+    def __init__(self, loss):
+        super().__init__()
+        self.model = torch.nn.Module()
+        self.model.weight = torch.nn.Parameter(torch.tensor([1.0, 2.0]))
+        self.loss = loss
+
+    def get_param_groups(self):
+        return {"fields": [self.model.weight]}
+
+    def get_train_loss_dict(self, step):
+        return {}, {"toy_loss": self.loss(self.model.weight)}, {}
+
+
+def toy_trainer(tmp_path, loss, **settings) -> SkedTrainer:
+    config = SkedTrainerConfig(method_name="sked", experiment_name="toy", output_dir=tmp_path, **settings)
+    config.machine.device_type = "cpu"
+    config.optimizers = {"fields": {"optimizer": AdamOptimizerConfig(lr=0.1),
+                                    "scheduler": ExponentialDecaySchedulerConfig(lr_final=0.01, max_steps=10)}}
+    trainer = SkedTrainer(config)
+    trainer.pipeline = ToyPipeline(loss)
+    trainer.optimizers = trainer.setup_optimizers()
+    trainer.skipped_steps, trainer.autocast_dtype = 0, torch.bfloat16
+    return trainer
+
+
+def scheduler_steps(trainer) -> int:
+    return trainer.optimizers.schedulers["fields"].last_epoch
+
+
+def test_finite_step_updates_and_steps_the_scheduler(tmp_path):
+    trainer = toy_trainer(tmp_path, lambda w: (w**2).sum())
+    _, _, metrics = trainer.train_iteration(0)
+    assert not torch.equal(trainer.pipeline.model.weight.detach(), torch.tensor([1.0, 2.0]))
+    assert scheduler_steps(trainer) == 1 and trainer.skipped_steps == 0 and metrics["skipped_steps"] == 0
+
+
+@pytest.mark.parametrize("loss, reason", [
+    (lambda w: (w**2).sum() * float("nan"), "loss"),
+    (lambda w: torch.sqrt(w - w.detach()).sum(), "gradients"),  # value 0, gradient inf
+])
+def test_non_finite_loss_or_gradient_skips_update_and_scheduler(tmp_path, loss, reason, capsys):
+    trainer = toy_trainer(tmp_path, loss)
+    _, _, metrics = trainer.train_iteration(0)
+    assert torch.equal(trainer.pipeline.model.weight.detach(), torch.tensor([1.0, 2.0]))
+    assert trainer.step_guard.reason == reason and trainer.skipped_steps == 1 and metrics["skipped_steps"] == 1
+    assert scheduler_steps(trainer) == 0, "no scheduler step without an update"
+    assert trainer.pipeline.model.weight.grad is None, "nothing of the skipped step is applied later"
+    assert "update skipped" in capsys.readouterr().out
+    trainer.pipeline.loss = lambda w: (w**2).sum()  # the next step is a normal one
+    trainer.train_iteration(1)
+    assert trainer.step_guard.reason is None and scheduler_steps(trainer) == 1
+
+
+def test_gradient_accumulation_steps_work(tmp_path):
+    trainer = toy_trainer(tmp_path, lambda w: (w**2).sum(), gradient_accumulation_steps={"fields": 2})
+    trainer.train_iteration(0)
+    assert torch.equal(trainer.pipeline.model.weight.detach(), torch.tensor([1.0, 2.0])), "accumulating"
+    assert torch.equal(trainer.pipeline.model.weight.grad, torch.tensor([2.0, 4.0]))
+    trainer.train_iteration(1)
+    assert not torch.equal(trainer.pipeline.model.weight.detach(), torch.tensor([1.0, 2.0])), "stepped"
+
+
+def test_log_gradients_works(tmp_path):
+    trainer = toy_trainer(tmp_path, lambda w: (w**2).sum(), log_gradients=True)
+    _, _, metrics = trainer.train_iteration(0)
+    assert float(metrics["Gradients/Total"]) == pytest.approx(float(torch.tensor([2.0, 4.0]).norm()))
+
+
+def test_autocast_dtype_is_skeds(tmp_path):
+    seen = []
+    trainer = toy_trainer(tmp_path, lambda w: seen.append(torch.get_autocast_dtype("cpu")) or (w**2).sum())
+    trainer.mixed_precision, trainer.autocast_dtype = True, torch.float16
+    trainer.train_iteration(0)
+    assert seen == [torch.float16] and torch.get_autocast_dtype("cpu") == torch.bfloat16
+
+
+def test_multi_device_is_refused_naming_the_flag():
+    with pytest.raises(ValueError, match="--machine.num-devices"):
+        SkedPipeline(SkedPipelineConfig(), device="cpu", world_size=2)
+
+
+# ---- compat: nerfstudio 1.1.5 here, main's behaviour on stubs -------------------------------
+
+def loop_of_1_1_5(self):
+    self.steps = list(range(self._start_step, self._start_step + self.config.max_num_iterations))
+
+
+def loop_of_main(self):
+    self.steps = list(range(self._start_step, self.config.max_num_iterations))
+
+
+def test_compat_detects_nerfstudio_1_1_5_here_and_main_on_stubs():
+    assert compat.train_loop_adds_start_step() is True
+    assert compat.train_loop_adds_start_step(loop_of_1_1_5) is True
+    assert compat.train_loop_adds_start_step(loop_of_main) is False
+    assert compat.datamanager_is_module(SkedDataManager.__new__(SkedDataManager)) is True
+    assert compat.datamanager_is_module(types.SimpleNamespace(device="cpu")) is False  # main: a plain object
+
+
+@pytest.mark.parametrize("loop", [loop_of_1_1_5, loop_of_main])
+def test_resumed_edit_runs_exactly_to_its_total(monkeypatch, loop):
+    monkeypatch.setattr(Trainer, "train", loop)
+    trainer = SkedTrainer.__new__(SkedTrainer)
+    trainer.config, trainer._start_step = types.SimpleNamespace(max_num_iterations=25), 21
+    trainer.train()
+    assert trainer.steps == [21, 22, 23, 24]
+
+
+# ---- the base's model config ----------------------------------------------------------------
+
+def test_every_architecture_field_of_the_base_is_copied_but_skeds_own():
+    base = NerfactoModelConfig(use_gradient_scaling=True, hidden_dim=32, collider_params={"near_plane": 0.5,
+                               "far_plane": 3.0}, prompt="the base's", interlevel_loss_mult=9.0)
+    edit = SkedModelConfig(prompt="a hat")
+    copy_base_architecture(edit, base)
+    assert edit.use_gradient_scaling and edit.hidden_dim == 32 and edit.collider_params["near_plane"] == 0.5
+    assert edit.prompt == "a hat" and edit.interlevel_loss_mult == 1.0 and edit._target is SkedModelConfig()._target
+    ngp = method_configs["instant-ngp-bounded"].pipeline.model
+    edit = SkedNGPModelConfig()
+    copy_base_architecture(edit, ngp)
+    assert edit.enable_collider == ngp.enable_collider and edit.grid_resolution == ngp.grid_resolution
+
+
+@pytest.mark.parametrize("method", ["nerfacto-big", "nerfacto-huge", "depth-nerfacto"])
+def test_nerfacto_style_bases_are_recognised_by_config_type(tmp_path, method):
+    config = method_configs[method]
+    assert base_family(config.pipeline.model) == "nerfacto"
+    (tmp_path / "nerfstudio_models").mkdir()
+    (tmp_path / "nerfstudio_models" / "step-000000001.ckpt").touch()
+    (tmp_path / "config.yml").write_text(yaml.dump(config))
+    assert resolve_base(tmp_path).family == "nerfacto"
+
+
+def test_other_models_are_refused():
+    assert base_family(method_configs["splatfacto"].pipeline.model) is None
+    assert base_family(method_configs["instant-ngp"].pipeline.model) == "instant-ngp"
+    assert base_family(SkedNGPModelConfig()) == "sked"
