@@ -37,6 +37,9 @@ class SkedDataManagerConfig(VanillaDataManagerConfig):
     """Random-view horizontal field of view, degrees (the authors' 40-80)."""
     seed: int = 0
     """Seed of the random views (resumed runs continue the sequence from the step)."""
+    train_num_rays_per_batch: int = 512
+    """Rays of the base's photos per step (the photo anchor, of which ~3/4 are kept): a small batch beside the
+    renders SKED needs anyway (nerfstudio's 1,024 or nerfacto's 4,096 would double a step's cost)."""
 
 
 def cameras_of(poses: torch.Tensor, fx, fy, cx, cy, width: int, height: int) -> Cameras:
