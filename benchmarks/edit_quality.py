@@ -95,6 +95,8 @@ def summarise(metrics: Dict) -> Dict:
     novel = metrics["novel_views"]["mean"]
     row = {
         "ios": metrics["mean"]["ios"],
+        "ios_region": metrics["mean"].get("ios_region"),
+        "ios_region_base": metrics["mean"].get("ios_region_base"),
         "psnr_outside_sketch_views": metrics["mean"]["psnr_outside"],
         "psnr_keep_vs_base": novel.get("psnr_keep"),
         "leak": novel.get("leak"),

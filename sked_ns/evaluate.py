@@ -1,7 +1,8 @@
 """`sked-eval`: the paper's protocol on an edited run's sketch views, and the same edit from other views.
 
 Renders every sketch view with the base and the edit and reports PSNR and SSIM outside the
-sketches, Intersection-over-Sketch, LPIPS outside the sketches and CLIP similarity to the
+sketches, Intersection-over-Sketch (and the region IoS: only opacity of content near the
+sketches counts, so a wall behind the sketch does not fill it), LPIPS outside the sketches and CLIP similarity to the
 prompt over 40 views around the edit, the last two only when their weights are available
 locally (reported as unavailable otherwise, never faked). Then scores novel views (the base
 dataset's evaluation split by default; `sked_ns.novel_views`): what the edit must keep
@@ -131,6 +132,12 @@ def evaluate(edit_run: Path, base_run: Optional[Path] = None, sketches: Optional
             "ios": intersection_over_sketch(after["accumulation"], mask),
             "ios_base": intersection_over_sketch(base["accumulation"], mask),
         }
+        # IoS counts any opacity, so a wall or table behind the sketch "fills" it before any edit; the
+        # region IoS counts only opacity of content near the sketches (1 - the pixel's preservation weight).
+        if "preservation_weight" in after:
+            entry["ios_region"] = intersection_over_sketch(1.0 - after["preservation_weight"], mask)
+        if "preservation_weight" in base:
+            entry["ios_region_base"] = intersection_over_sketch(1.0 - base["preservation_weight"], mask)
         if lpips is not None:
             keep = (~mask)[None, None].float()  # LPIPS of the images with the sketch blanked in both
             to_nchw = lambda rgb: rgb.permute(2, 0, 1)[None] * keep  # noqa: E731
@@ -199,7 +206,8 @@ def entrypoint() -> None:
     cv2.imwrite(str(sheet), (outcome["sheet"].numpy().clip(0, 1) * 255).round().astype(np.uint8)[..., ::-1])
     mean = outcome["metrics"]["mean"]
     print(f"PSNR outside {mean['psnr_outside']:.2f} dB, SSIM outside {mean['ssim_outside']:.3f}, "
-          f"IoS {mean['ios']:.3f} (base {mean['ios_base']:.3f}); LPIPS: {outcome['metrics']['lpips_outside']}; "
+          f"IoS {mean['ios']:.3f} (base {mean['ios_base']:.3f}), region IoS {mean.get('ios_region', float('nan')):.3f} "
+          f"(base {mean.get('ios_region_base', float('nan')):.3f}); LPIPS: {outcome['metrics']['lpips_outside']}; "
           f"CLIP similarity: {outcome['metrics']['clip_similarity']}")
     if "novel_views" in outcome["metrics"]:
         print(novel_summary(outcome["metrics"]["novel_views"]))

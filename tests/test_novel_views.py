@@ -105,6 +105,9 @@ def test_sked_eval_scores_the_eval_split_and_a_target(small_edit, tmp_path):
     from sked_ns.evaluate import evaluate
 
     metrics = evaluate(small_edit["run"], resolution=32, novel_resolution=32)["metrics"]
+    # Region IoS counts only what lies near the sketches: the base's sphere under the hat barely counts.
+    mean = metrics["mean"]
+    assert mean["ios_region_base"] < mean["ios_base"] and mean["ios_region"] > mean["ios_region_base"] + 0.3
     novel = metrics["novel_views"]
     assert novel["cameras"] == "the base dataset's eval split" and len(novel["views"]) >= 2
     assert {"psnr_keep", "ssim_keep", "leak", "psnr_keep_gt", "psnr_keep_gt_base"} <= set(novel["mean"])
