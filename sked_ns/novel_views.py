@@ -24,6 +24,7 @@ neither the base nor the edit shows anything near the sketches there. Over the k
 
 from __future__ import annotations
 
+import copy
 import json
 from dataclasses import dataclass
 from pathlib import Path
@@ -59,18 +60,9 @@ def _rescaled(camera, resolution: int):
     longer = max(int(camera.width), int(camera.height))
     camera = camera.reshape(())  # a single camera
     if longer != resolution:
-        camera = _copy_camera(camera)
+        camera = copy.deepcopy(camera)  # rescaling is in place; the dataset's cameras stay as they are
         camera.rescale_output_resolution(resolution / longer)
     return camera
-
-
-def _copy_camera(camera):
-    from nerfstudio.cameras.cameras import Cameras
-
-    return Cameras(camera_to_worlds=camera.camera_to_worlds.clone(), fx=camera.fx.clone(), fy=camera.fy.clone(),
-                   cx=camera.cx.clone(), cy=camera.cy.clone(), width=camera.width.clone(), height=camera.height.clone(),
-                   camera_type=camera.camera_type.clone(), distortion_params=None if camera.distortion_params is None
-                   else camera.distortion_params.clone())
 
 
 def _resize(image: np.ndarray, camera) -> np.ndarray:
