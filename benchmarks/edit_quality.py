@@ -5,7 +5,7 @@
     python benchmarks/edit_quality.py --replot     # the table again from the results JSON
 
 Scenes: `hat` (the demo sphere's edit, which SKED's defaults were tuned on) and the held-out
-`vase` and `crate` (`sked_ns.benchmark_scenes`, defined before any tuning), reported apart.
+`vase` and `crate` (`sked_ns.demo.benchmark_scenes`, defined before any tuning), reported apart.
 Each base is trained like a user trains one: `ns-train nerfacto` with its defaults apart from
 the iterations, the rays per batch, the hash-table size and the CPU (nerfstudio's LPIPS metric, an AlexNet
 download, is skipped: there is no network here). Each edit is `ns-train sked` with reference
@@ -52,7 +52,7 @@ def run(command: List[str], log: Path) -> None:
 
 def ns_train(arguments: List[str]) -> List[str]:
     """`ns-train ARGUMENTS`, without nerfstudio's LPIPS metric (it downloads AlexNet weights)."""
-    code = ("import sys; from sked_ns.sked_core import without_lpips; from nerfstudio.scripts.train import entrypoint; "
+    code = ("import sys; from sked_ns.core import without_lpips; from nerfstudio.scripts.train import entrypoint; "
             "sys.argv = ['ns-train'] + sys.argv[1:]\nwith without_lpips(): entrypoint()")
     return [sys.executable, "-c", code, *arguments]
 
@@ -75,7 +75,7 @@ def edit(base: Path, paths: Dict[str, Path], scene: str, protocol: Dict, output:
     arguments = ["sked", "--load-dir", str(base), "--sketches", str(paths["sketches"]), "--output-dir", str(output),
                  "--experiment-name", scene, "--max-num-iterations", str(iterations), "--vis", "tensorboard",
                  "--machine.device-type", "cpu", "--steps-per-save", str(iterations),
-                 "--pipeline.model.guidance", "reference", "--pipeline.model.reference.target", scene,
+                 "pipeline.model.guidance:reference", "--pipeline.model.guidance.target", scene,
                  "--pipeline.model.guidance-resolution", str(resolution),
                  "--pipeline.model.silhouette-resolution", str(resolution),
                  "--pipeline.model.samples-per-ray-scale", str(protocol.get("samples_per_ray_scale", 1.0)),
@@ -140,7 +140,7 @@ def main() -> None:
     if args.replot:
         print(table(json.loads(args.output.read_text())))
         return
-    from sked_ns.benchmark_scenes import write_benchmark
+    from sked_ns.demo.benchmark_scenes import write_benchmark
 
     scenes = ["hat"] if args.quick else args.scenes.split(",")
     protocols = {"quick": {"iterations": 4, "resolution": 16, "samples_per_ray_scale": 0.25}} if args.quick else {

@@ -141,14 +141,15 @@ def edit_arguments(base: Path, work: Path, sd: Path, name: str, iterations: int,
     """The user's command line: the paper's settings from the preset; small renders only at --size tiny."""
     arguments = [
         "--load-dir", str(base), "--sketches", str(work / "sketches"), "--prompt", PROMPT,
-        "--pipeline.model.sds.model", str(sd), "--max-num-iterations", str(iterations),
+        "--max-num-iterations", str(iterations),
         "--output-dir", str(work / "edits"), "--experiment-name", name, "--vis", "tensorboard",
         "--machine.device-type", device, "--steps-per-save", str(10**9),
     ]
+    guidance = ["pipeline.model.guidance:stable-diffusion", "--pipeline.model.guidance.model", str(sd)]
     if size == "tiny":
-        arguments += ["--pipeline.model.guidance-resolution", "16", "--pipeline.model.silhouette-resolution", "16",
-                      "--pipeline.model.sds.image-size", "32"]
-    return arguments + ["nerfstudio-data", "--data", str(work / "data")]
+        arguments += ["--pipeline.model.guidance-resolution", "16", "--pipeline.model.silhouette-resolution", "16"]
+        guidance += ["--pipeline.model.guidance.image-size", "32"]
+    return arguments + guidance + ["nerfstudio-data", "--data", str(work / "data")]
 
 
 def run_edit(check: Check, key: str, base: Path, work: Path, sd: Path, args) -> Optional[object]:
@@ -216,7 +217,7 @@ def run_edit(check: Check, key: str, base: Path, work: Path, sd: Path, args) -> 
 
 
 def sked_preset_cadence(name: str) -> int:
-    from sked_ns.sked_config import sked_method
+    from sked_ns.config import sked_method
 
     return int(getattr(sked_method.config, name))
 
@@ -424,8 +425,8 @@ def main() -> None:
     )
     check.write()
 
-    from sked_ns import demo_scene
-    from sked_ns.demo_base import TinyNerfacto, build_demo_base
+    from sked_ns.demo import scene as demo_scene
+    from sked_ns.demo.base import TinyNerfacto, build_demo_base
     from sked_ns.sketches import save_sketch_set
     from sds_iteration import build_random_stable_diffusion
 

@@ -26,7 +26,7 @@ import numpy as np
 import torch
 from scipy.spatial import cKDTree
 
-from sked_ns.demo_scene import demo_sketch_set
+from sked_ns.demo.scene import demo_sketch_set
 from sked_ns.preservation import SketchDistanceField
 
 VIEW_ANGLES = ((20.0, 20.0), (110.0, 30.0), (200.0, 25.0), (290.0, 35.0))

@@ -125,8 +125,8 @@ def main() -> None:
     parser.add_argument("--workdir", type=Path, default=None)
     args = parser.parse_args()
 
-    from sked_ns import demo_scene
-    from sked_ns.demo_base import build_demo_base
+    from sked_ns.demo import scene as demo_scene
+    from sked_ns.demo.base import build_demo_base
     from sked_ns.edit_run import edit_config
     from sked_ns.sketches import save_sketch_set
 
@@ -142,8 +142,8 @@ def main() -> None:
                              guidance="stable-diffusion", iterations=args.iterations + 1,
                              guidance_resolution=args.resolution, silhouette_resolution=args.resolution,
                              device=device, steps_per_save=10**9)
-        config.pipeline.model.sds.model = str(sd)
-        config.pipeline.model.sds.image_size = args.image_size
+        config.pipeline.model.guidance.model = str(sd)
+        config.pipeline.model.guidance.image_size = args.image_size
         config.set_timestamp()
         trainer = config.setup(local_rank=0, world_size=1)
         trainer.setup()

@@ -38,7 +38,7 @@ SCENE_NAMES = ("hat", "handle", "antenna")
 
 def plan(device: str, quick: bool) -> list[dict]:
     """Every run: a name, its group, scene, knob values and base (hash-grid size)."""
-    from sked_ns.sked_config import PRESETS, read_preset
+    from sked_ns.config import PRESETS, read_preset
 
     divide_iterations, divide_resolution = ITERATION_DIVISOR[device], RESOLUTION_DIVISOR[device]
 
@@ -83,8 +83,8 @@ def plan(device: str, quick: bool) -> list[dict]:
 
 def prepare(workdir: Path, hash_sizes, base_steps: int = 400) -> dict:
     """The demo dataset, one tiny base per hash-grid size, and the three scenes' sketch sets."""
-    from sked_ns import demo_scene
-    from sked_ns.demo_base import TinyNerfacto, build_demo_base
+    from sked_ns.demo import scene as demo_scene
+    from sked_ns.demo.base import TinyNerfacto, build_demo_base
     from sked_ns.sketches import save_sketch_set
 
     data = workdir / "data"
@@ -107,7 +107,7 @@ def run_one(run: dict, workdir: Path, prepared: dict, device: str) -> dict:
     """One edit and its measurements (called in a fresh process)."""
     import torch
 
-    from sked_ns import demo_scene
+    from sked_ns.demo import scene as demo_scene
     from sked_ns.edit_run import edit_config
     from sked_ns.metrics import intersection_over_sketch, psnr_inside, psnr_outside
     from sked_ns.render import render_at, render_base_at, resized_mask
@@ -120,7 +120,7 @@ def run_one(run: dict, workdir: Path, prepared: dict, device: str) -> dict:
                          silhouette_resolution=run["silhouette_resolution"], device=device,
                          steps_per_save=10**9)
     model_config = config.pipeline.model
-    model_config.reference.target = run["scene"]
+    model_config.guidance.target = run["scene"]
     model_config.samples_per_ray_scale = run["samples_per_ray_scale"]
     model_config.edit_box_warmup = run["edit_box_warmup"]
     model_config.ablation = run["ablation"]
@@ -188,6 +188,7 @@ def summarise(results: list[dict]) -> list[dict]:
             "group": group, "name": name, "scenes": [r["scene"] for r in runs],
             **{key: runs[0][key] for key in ("iterations", "guidance_resolution", "samples_per_ray_scale",
                                              "mixed_precision", "log2_hashmap_size", "ablation")},
+            **({"note": runs[0]["note"]} if "note" in runs[0] else {}),
             **{key: float(np.mean([r[key] for r in runs])) for key in
                ("seconds_total", "ms_per_iteration", "peak_memory_mb", "ios", "ios_base", "psnr_outside",
                 "psnr_target_inside")},
@@ -230,11 +231,23 @@ def table(summary: list[dict]) -> str:
              "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in summary:
         lines.append(
-            f"| {r['name']} | {r['group']} | {r['iterations']} | {r['guidance_resolution']} | {r['samples_per_ray_scale']:g} "
+            f"| {r['name']}{' (' + r['note'] + ')' if 'note' in r else ''} | {r['group']} | {r['iterations']} | {r['guidance_resolution']} | {r['samples_per_ray_scale']:g} "
             f"| {'on' if r['mixed_precision'] else 'off'} | 2^{r['log2_hashmap_size']} | {r['seconds_total']:.1f} "
             f"| {r['ms_per_iteration']:.0f} | {r['peak_memory_mb']:.0f} | {r['ios']:.3f} | {r['psnr_outside']:.1f} "
             f"| {r['psnr_target_inside']:.1f} | {'*' if r['pareto'] else ''} |")
     return "\n".join(lines)
+
+
+def commit() -> str:
+    """The measured code's commit (the checkout this script runs from)."""
+    result = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
+                            cwd=Path(__file__).parent)
+    return result.stdout.strip() or "unknown"
+
+
+def write_partial(output: Path, results: list[dict]) -> None:
+    output.parent.mkdir(parents=True, exist_ok=True)
+    output.with_suffix(".partial.json").write_text(json.dumps({"commit": commit(), "runs": results}, indent=2))
 
 
 def main() -> None:
@@ -243,6 +256,10 @@ def main() -> None:
     parser.add_argument("--output", type=Path, default=RESULTS / "speed_accuracy.json")
     parser.add_argument("--workdir", type=Path, default=None, help="keep bases and edits here (default: a temp dir)")
     parser.add_argument("--replot", action="store_true", help="rebuild summary, table and plot from --output's runs")
+    parser.add_argument("--skip", action="append", default=[], metavar="NAME",
+                        help="leave out the runs called NAME (repeatable); with --keep-from their older rows are kept")
+    parser.add_argument("--keep-from", type=Path, default=None,
+                        help="an older results JSON: its runs of the --skip names are carried over, marked as older")
     parser.add_argument("--run", help=argparse.SUPPRESS)  # internal: one run, JSON in and out
     args = parser.parse_args()
 
@@ -264,7 +281,12 @@ def main() -> None:
         print("RESULT " + json.dumps(result))
         return
 
-    runs = plan(device, args.quick)
+    runs = [run for run in plan(device, args.quick) if run["name"] not in args.skip]
+    kept = []
+    if args.keep_from is not None:
+        older = json.loads(args.keep_from.read_text())
+        kept = [{**run, "note": f"not re-measured: from {args.keep_from.name} ({older.get('commit', 'older run')})"}
+                for run in older["runs"] if run["name"] in args.skip]
     with tempfile.TemporaryDirectory() as scratch:
         workdir = args.workdir or Path(scratch)
         workdir.mkdir(parents=True, exist_ok=True)
@@ -279,9 +301,11 @@ def main() -> None:
                 raise RuntimeError(f"run {run['name']} on {run['scene']} failed:\n{process.stderr[-4000:]}")
             results.append(json.loads(lines[-1][len("RESULT "):]))
             r = results[-1]
+            write_partial(args.output, results)  # an interrupted benchmark keeps what it measured
             print(f"[{index + 1}/{len(runs)}] {run['name']:>26} {run['scene']:>8}: {r['seconds_total']:6.1f} s, "
                   f"IoS {r['ios']:.3f}, PSNR out {r['psnr_outside']:.1f}, target {r['psnr_target_inside']:.1f}", flush=True)
 
+    results += kept
     summary = summarise(results)
     protocol = (f"{'CPU' if device == 'cpu' else 'GPU'} protocol: iterations / {ITERATION_DIVISOR[device]}, "
                 f"render sizes / {RESOLUTION_DIVISOR[device]} of each preset")
@@ -290,7 +314,7 @@ def main() -> None:
     label = f"{protocol}\n{machine}; reference guidance, tiny demo scenes"
     args.output.parent.mkdir(parents=True, exist_ok=True)
     args.output.write_text(json.dumps({"protocol": protocol, "machine": machine, "device": device, "quick": args.quick,
-                                       "summary": summary, "runs": results}, indent=2))
+                                       "commit": commit(), "summary": summary, "runs": results}, indent=2))
     plot(summary, args.output.with_suffix(".png"), label)
     print(label.replace("\n", "; "))
     print(table(summary))

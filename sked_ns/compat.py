@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import inspect
 import re
+import warnings
 from typing import Callable, Optional
 
 import numpy as np
@@ -74,3 +75,11 @@ def train_loop_adds_start_step(train: Optional[Callable] = None) -> bool:
     except (OSError, TypeError):  # no source shipped (zipped or compiled install)
         return True
     return _LOOP_COUNTS_FROM_START.search(source) is not None
+
+
+def quiet_third_party_warnings() -> None:
+    """nerfstudio 1.1.5 on torch 2.14 warns on every camera call; keep the demo's output readable."""
+    warnings.filterwarnings("ignore", category=FutureWarning)
+    warnings.filterwarnings("ignore", message=".*non-tuple sequence for multidimensional indexing.*")
+    warnings.filterwarnings("ignore", message=".*DataLoader will create.*")
+    warnings.filterwarnings("ignore", message=".*Converting a tensor with requires_grad=True to a scalar.*")

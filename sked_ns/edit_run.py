@@ -6,8 +6,9 @@ import copy
 from pathlib import Path
 from typing import Optional
 
-from sked_ns.sked_config import sked_method
-from sked_ns.sked_trainer import SkedTrainerConfig
+from sked_ns.config import sked_method
+from sked_ns.guidance import guidance_config
+from sked_ns.trainer import SkedTrainerConfig
 
 
 def edit_config(
@@ -37,7 +38,7 @@ def edit_config(
     config.steps_per_save = steps_per_save
     config.steps_per_eval_image = 10**9
     config.pipeline.model.prompt = prompt
-    config.pipeline.model.guidance = guidance
+    config.pipeline.model.guidance = guidance_config(guidance)
     config.pipeline.model.guidance_resolution = guidance_resolution
     config.pipeline.model.silhouette_resolution = silhouette_resolution
     config.pipeline.model.edit_box_warmup = max(1, iterations // 2)

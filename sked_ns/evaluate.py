@@ -27,7 +27,7 @@ from sked_ns.metrics import intersection_over_sketch, psnr_outside, ssim_outside
 from sked_ns.clip_score import DEFAULT_CLIP, ClipScorer, orbit_cameras
 from sked_ns.random_views import focal_from_fov
 from sked_ns.render import load_pipeline, render_at, render_base_at, render_camera, resized_mask
-from sked_ns.sked_datamanager import cameras_of
+from sked_ns.cameras import cameras_of
 from sked_ns.sketches import load_sketch_set
 
 
@@ -170,7 +170,7 @@ def evaluate(edit_run: Path, base_run: Optional[Path] = None, sketches: Optional
 
 
 def entrypoint() -> None:
-    from sked_ns.demo import quiet_third_party_warnings
+    from sked_ns.compat import quiet_third_party_warnings
 
     quiet_third_party_warnings()
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])

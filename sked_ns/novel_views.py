@@ -35,6 +35,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from sked_ns.cameras import cameras_of
 from sked_ns.metrics import psnr_outside, ssim_outside
 from sked_ns.sketches import DataparserTransform
 
@@ -94,8 +95,6 @@ def eval_split_views(pipeline, resolution: int, background) -> List[NovelView]:
 def transforms_views(path: Path, transform: DataparserTransform, resolution: int, background,
                      with_images: bool) -> List[NovelView]:
     """Cameras of a nerfstudio transforms.json in the base's data frame (its images as ground truth)."""
-    from nerfstudio.cameras.cameras import Cameras, CameraType
-
     path = Path(path)
     if path.is_dir():
         path = path / "transforms.json"
@@ -113,11 +112,9 @@ def transforms_views(path: Path, transform: DataparserTransform, resolution: int
                              "at the top level, as nerfstudio's transforms.json does.")
         pose = transform.apply(np.asarray(frame["transform_matrix"], dtype=np.float64)[:3])
         width, height = int(get("w")), int(get("h"))
-        camera = Cameras(camera_to_worlds=torch.tensor(pose[None], dtype=torch.float32),
-                         fx=float(get("fl_x")), fy=float(get("fl_y") or get("fl_x")),
-                         cx=float(get("cx") if get("cx") is not None else width / 2),
-                         cy=float(get("cy") if get("cy") is not None else height / 2),
-                         width=width, height=height, camera_type=CameraType.PERSPECTIVE)
+        camera = cameras_of(torch.tensor(pose[None], dtype=torch.float32), float(get("fl_x")),
+                            float(get("fl_y") or get("fl_x")), float(get("cx") if get("cx") is not None else width / 2),
+                            float(get("cy") if get("cy") is not None else height / 2), width, height)
         camera = _rescaled(camera, resolution)
         ground_truth = changed = None
         if with_images and "file_path" in frame:
@@ -144,7 +141,6 @@ def orbit_views(centre: np.ndarray, radius: float, count: int, resolution: int) 
     """`count` cameras on two rings around the edit box (no ground truth)."""
     from sked_ns.clip_score import orbit_cameras
     from sked_ns.random_views import focal_from_fov
-    from sked_ns.sked_datamanager import cameras_of
 
     focal = focal_from_fov(50.0, resolution)
     return [NovelView(cameras_of(torch.tensor(pose[None], dtype=torch.float32), focal, focal, resolution / 2,

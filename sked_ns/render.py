@@ -7,7 +7,7 @@ from typing import Dict
 
 import torch
 
-from sked_ns.sked_datamanager import sketch_view_at
+from sked_ns.cameras import sketch_view_at
 from sked_ns.sketches import SketchView
 
 
@@ -52,7 +52,7 @@ def resized_mask(view: SketchView, resolution: int) -> torch.Tensor:
 def load_pipeline(run_dir: Path, device: str = "cpu"):
     """A trained run's pipeline (any method, SKED included) with its latest weights, for rendering."""
     from sked_ns.base_scene import resolve_base
-    from sked_ns.sked_model import _without_lpips
+    from sked_ns.nerfacto_model import _without_lpips
 
     run = resolve_base(run_dir)
     if run.family == "instant-ngp" and not device.startswith("cuda"):

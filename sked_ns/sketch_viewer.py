@@ -52,7 +52,7 @@ def renderer(pipeline, lock: Optional[threading.Lock] = None, max_width: Optiona
     import cv2
 
     from sked_ns.render import render_camera
-    from sked_ns.sked_datamanager import cameras_of
+    from sked_ns.cameras import cameras_of
 
     def render(camera: PinholeCamera) -> np.ndarray:
         scale = min(1.0, max_width / camera.width) if max_width else 1.0

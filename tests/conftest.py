@@ -7,7 +7,7 @@ import os
 import numpy as np
 import pytest
 
-from sked_ns.demo_scene import look_at
+from sked_ns.demo.scene import look_at
 from sked_ns.sketches import SketchView
 
 # No test may reach a model hub.
@@ -54,8 +54,8 @@ def random_view(rng: np.random.Generator, width: int, height: int, name: str = "
 @pytest.fixture(scope="session")
 def scene(tmp_path_factory):
     """The demo dataset, a tiny nerfacto base fitted to it (a real run folder) and hat sketches."""
-    from sked_ns import demo_scene
-    from sked_ns.demo_base import build_demo_base
+    from sked_ns.demo import scene as demo_scene
+    from sked_ns.demo.base import build_demo_base
     from sked_ns.sketches import save_sketch_set
 
     root = tmp_path_factory.mktemp("scene")
@@ -73,7 +73,7 @@ def rng() -> np.random.Generator:
 @pytest.fixture(scope="session")
 def ngp_scene(scene):
     """The same dataset and sketches with a tiny instant-ngp base (occupancy grid 2 x 32^3)."""
-    from sked_ns.demo_base import build_demo_base
+    from sked_ns.demo.base import build_demo_base
 
     run = build_demo_base(scene["data"], scene["root"] / "ngp-runs", steps=400, points_per_step=4096,
                           method="instant-ngp")

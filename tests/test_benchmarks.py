@@ -67,7 +67,7 @@ def test_gpu_check_smoke_run_on_the_cpu(tmp_path):
         entry = data[edit]
         assert entry["iterations"] == 3 and entry["ms_per_iteration"] > 0 and entry["ratio_to_sd_floor"] > 0
         assert entry["extrapolated_10k_seconds"] > 10_000 * entry["ms_per_iteration"] / 1000
-    assert data["ngp"]["model"] == "SkedNGPModel" and data["nerfacto"]["model"] == "SkedModel"
+    assert data["ngp"]["model"] == "SkedNGPModel" and data["nerfacto"]["model"] == "SkedNerfactoModel"
     assert data["marcher_check"]["relative_difference"] == 0.0  # the same torch marcher on both sides here
     assert data["ms_per_iteration"] == data["nerfacto"]["ms_per_iteration"] and data["sd_floor_ms"] > 0
     assert "RANDOM weights" in data["description"]

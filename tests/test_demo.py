@@ -7,7 +7,7 @@ import json
 import cv2
 import pytest
 
-from sked_ns.demo import run
+from sked_ns.demo.run import run
 
 
 def test_demo_edits_the_scene_and_reports(tmp_path):
@@ -23,7 +23,7 @@ def test_demo_edits_the_scene_and_reports(tmp_path):
 
 
 def test_prompt_without_weights_falls_back_to_reference(tmp_path, monkeypatch, capsys):
-    from sked_ns.demo import choose_guidance
+    from sked_ns.demo.run import choose_guidance
 
     monkeypatch.setenv("HF_HOME", str(tmp_path / "empty-cache"))
     assert choose_guidance("a red hat", "CompVis/stable-diffusion-v1-4") == "reference"

@@ -17,12 +17,12 @@ from reference import file_digests
 import yaml
 from nerfstudio.configs.method_configs import method_configs
 
-from sked_ns import demo_scene
+from sked_ns.demo import scene as demo_scene
 from sked_ns.base_scene import read_model_state, resolve_base
 from sked_ns.edit_run import edit_config, run_edit
 from sked_ns.metrics import intersection_over_sketch, psnr_outside
 from sked_ns.render import load_pipeline, render_at, resized_mask
-from sked_ns.sked_trainer import resolve_edit
+from sked_ns.trainer import resolve_edit
 from sked_ns.sketches import SketchSet, SketchView, load_sketch_set, save_sketch_set
 
 ITERATIONS = 60
@@ -233,8 +233,8 @@ def test_text_prompt_edit_runs_through_stable_diffusion(scene, tmp_path):
     config = edit_config(scene["base"], scene["data"], scene["sketches"], tmp_path / "out", iterations=3,
                          guidance="stable-diffusion", prompt="a red chef hat", guidance_resolution=16,
                          silhouette_resolution=16)
-    config.pipeline.model.sds.model = str(build_tiny_stable_diffusion(tmp_path / "sd"))
-    config.pipeline.model.sds.image_size = 32
+    config.pipeline.model.guidance.model = str(build_tiny_stable_diffusion(tmp_path / "sd"))
+    config.pipeline.model.guidance.image_size = 32
     trainer = run_edit(config)
     _, losses, _ = trainer.pipeline.get_train_loss_dict(step=3)
     assert {"sds_loss", "preservation_loss", "silhouette_loss", "sparsity_loss"} <= set(losses)
@@ -290,7 +290,7 @@ def test_sked_eval_reports_the_paper_metrics(scene, edited, tmp_path):
     output = tmp_path / "eval.json"
     result = subprocess.run(
         [sys.executable, "-m", "sked_ns.evaluate", str(edited["run"] / "config.yml"), "--output", str(output),
-         "--resolution", "48"], capture_output=True, text=True, timeout=600,
+         "--resolution", "48", "--novel-resolution", "24", "--max-novel-views", "2"], capture_output=True, text=True, timeout=600,
     )
     assert result.returncode == 0, result.stderr[-3000:]
     metrics = json.loads(output.read_text())
@@ -310,11 +310,12 @@ def test_sked_eval_clip_similarity_with_local_weights(scene, edited, tmp_path):
 
     clip = build_tiny_clip(tmp_path / "clip")
     outcome = evaluate(edited["run"], resolution=32, clip_model=str(clip), prompt="a sphere wearing a hat",
-                       clip_views=6, clip_resolution=32)["metrics"]
+                       clip_views=6, clip_resolution=32, cameras="none")["metrics"]
     assert -1 <= outcome["clip_similarity"] <= 1 and -1 <= outcome["clip_similarity_base"] <= 1
     assert outcome["clip_similarity"] != outcome["clip_similarity_base"], "the edit's views differ from the base's"
     assert outcome["clip_views"] == 6 and outcome["clip_prompt"] == "a sphere wearing a hat"
-    missing = evaluate(edited["run"], resolution=32, clip_model=str(tmp_path / "absent"), prompt="a hat")["metrics"]
+    missing = evaluate(edited["run"], resolution=32, clip_model=str(tmp_path / "absent"), prompt="a hat",
+                       cameras="none")["metrics"]
     assert missing["clip_similarity"].startswith("unavailable: no CLIP weights")
 
 

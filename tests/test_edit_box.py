@@ -8,7 +8,7 @@ import torch
 from nerfacc import OccGridEstimator
 
 from sked_ns.cameras import project
-from sked_ns.demo_scene import orbit_pose
+from sked_ns.demo.scene import orbit_pose
 from sked_ns.edit_box import EditBox, compute_edit_box, occupancy_grid_mask
 from sked_ns.sketches import SketchView
 

@@ -145,7 +145,7 @@ def test_sds_weightings_differ_by_sqrt_alpha_bar_and_bad_ones_are_refused(tiny_s
     alpha_bar = torch.tensor([0.9, 0.5, 0.0058])
     torch.testing.assert_close(sds_weight(alpha_bar, "authors"), alpha_bar.sqrt() * sds_weight(alpha_bar, "dreamfusion"))
     assert StableDiffusionGuidanceConfig().weighting == "authors"
-    with pytest.raises(ValueError, match=r"weighting.*'sds'.*--pipeline.model.sds.weighting"):
+    with pytest.raises(ValueError, match=r"weighting.*'sds'.*--pipeline.model.guidance.weighting"):
         _guidance(tiny_sd, weighting="sds").prepare("a red hat", "cpu", {})
 
 

@@ -16,11 +16,11 @@ from nerfstudio.models.nerfacto import NerfactoModelConfig
 
 from sked_ns import compat
 from sked_ns.base_scene import base_family, copy_base_architecture, resolve_base
-from sked_ns.sked_datamanager import SkedDataManager
-from sked_ns.sked_model import SkedModelConfig
-from sked_ns.sked_ngp import SkedNGPModelConfig
-from sked_ns.sked_pipeline import SkedPipeline, SkedPipelineConfig
-from sked_ns.sked_trainer import SkedTrainer, SkedTrainerConfig
+from sked_ns.datamanager import SkedDataManager
+from sked_ns.nerfacto_model import SkedNerfactoModelConfig
+from sked_ns.ngp_model import SkedNGPModelConfig
+from sked_ns.pipeline import SkedPipeline, SkedPipelineConfig
+from sked_ns.trainer import SkedTrainer, SkedTrainerConfig
 
 
 class ToyPipeline(torch.nn.Module):
@@ -139,10 +139,10 @@ def test_resumed_edit_runs_exactly_to_its_total(monkeypatch, loop):
 def test_every_architecture_field_of_the_base_is_copied_but_skeds_own():
     base = NerfactoModelConfig(use_gradient_scaling=True, hidden_dim=32, collider_params={"near_plane": 0.5,
                                "far_plane": 3.0}, prompt="the base's", interlevel_loss_mult=9.0)
-    edit = SkedModelConfig(prompt="a hat")
+    edit = SkedNerfactoModelConfig(prompt="a hat")
     copy_base_architecture(edit, base)
     assert edit.use_gradient_scaling and edit.hidden_dim == 32 and edit.collider_params["near_plane"] == 0.5
-    assert edit.prompt == "a hat" and edit.interlevel_loss_mult == 1.0 and edit._target is SkedModelConfig()._target
+    assert edit.prompt == "a hat" and edit.interlevel_loss_mult == 1.0 and edit._target is SkedNerfactoModelConfig()._target
     ngp = method_configs["instant-ngp-bounded"].pipeline.model
     edit = SkedNGPModelConfig()
     copy_base_architecture(edit, ngp)

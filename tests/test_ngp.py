@@ -10,10 +10,11 @@ from reference import file_digests
 
 from sked_ns.base_scene import read_model_state
 from sked_ns.edit_run import edit_config, run_edit
+from sked_ns.guidance import guidance_name
 from sked_ns.metrics import intersection_over_sketch, psnr_outside
+from sked_ns.ngp_model import SkedNGPModel, SkedNGPModelConfig
 from sked_ns.render import load_pipeline, render_at, render_base_at, resized_mask
-from sked_ns.sked_ngp import SkedNGPModel, SkedNGPModelConfig
-from sked_ns.sked_trainer import resolve_edit
+from sked_ns.trainer import resolve_edit
 
 ITERATIONS = 60
 
@@ -34,7 +35,7 @@ def test_an_ngp_base_gets_the_occupancy_grid_model(ngp_scene, tmp_path):
     model = config.pipeline.model
     assert isinstance(model, SkedNGPModelConfig)
     assert (model.grid_resolution, model.grid_levels, model.render_step_size) == (32, 2, 0.01)
-    assert model.guidance == "reference" and model.sketches == ngp_scene["sketches"]
+    assert guidance_name(model.guidance) == "reference" and model.sketches == ngp_scene["sketches"]
     assert config.load_dir is None
 
 
@@ -101,7 +102,7 @@ def test_ngp_base_untouched_and_frozen(ngp_scene, ngp_edited):
 def test_ngp_edit_outputs_preservation_weight_and_resumes(ngp_scene, ngp_edited, tmp_path):
     pipeline = load_pipeline(ngp_edited["run"])
     view = pipeline.model.sketch_set.views[0]
-    from sked_ns.sked_datamanager import sketch_view_at
+    from sked_ns.cameras import sketch_view_at
 
     camera = sketch_view_at(view, 24)[0]
     with torch.no_grad():
@@ -132,7 +133,7 @@ def test_ns_train_sked_on_an_ngp_run_folder(ngp_scene, tmp_path):
     ns_train = shutil.which("ns-train", path=str(Path(sys.executable).parent)) or shutil.which("ns-train")
     command = [
         ns_train, "sked", "--load-dir", str(ngp_scene["base"]), "--sketches", str(ngp_scene["sketches"]),
-        "--pipeline.model.guidance", "reference", "--pipeline.model.guidance-resolution", "16",
+        "pipeline.model.guidance:reference", "--pipeline.model.guidance-resolution", "16",
         "--pipeline.model.silhouette-resolution", "16", "--max-num-iterations", "3", "--steps-per-save", "2",
         "--machine.device-type", "cpu", "--mixed-precision", "False", "--vis", "tensorboard",
         "--output-dir", str(tmp_path), "nerfstudio-data", "--data", str(ngp_scene["data"]),
@@ -148,7 +149,7 @@ def test_ns_train_sked_on_an_ngp_run_folder(ngp_scene, tmp_path):
 @pytest.fixture(scope="module")
 def bounded_base(ngp_scene, tmp_path_factory):
     """An instant-ngp-bounded base trained, as that method does, through the instant-ngp-data dataparser."""
-    from sked_ns.demo_base import build_demo_base
+    from sked_ns.demo.base import build_demo_base
 
     return build_demo_base(ngp_scene["data"], tmp_path_factory.mktemp("bounded"), steps=300, points_per_step=4096,
                            method="instant-ngp-bounded")
@@ -182,7 +183,7 @@ def test_ns_train_sked_on_a_bounded_run_with_instant_ngp_data(ngp_scene, bounded
     ns_train = shutil.which("ns-train", path=str(Path(sys.executable).parent)) or shutil.which("ns-train")
     common = [
         ns_train, "sked", "--load-dir", str(bounded_base), "--sketches", str(ngp_scene["sketches"]),
-        "--pipeline.model.guidance", "reference", "--pipeline.model.guidance-resolution", "16",
+        "pipeline.model.guidance:reference", "--pipeline.model.guidance-resolution", "16",
         "--pipeline.model.silhouette-resolution", "16", "--max-num-iterations", "2", "--steps-per-save", "2",
         "--machine.device-type", "cpu", "--mixed-precision", "False", "--vis", "tensorboard",
     ]

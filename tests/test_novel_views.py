@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 import torch
 
-from sked_ns import demo_scene, novel_views
+from sked_ns import novel_views
+from sked_ns.demo import scene as demo_scene
 from sked_ns.edit_run import edit_config, run_edit
 from sked_ns.render import load_pipeline
 from sked_ns.sketches import DataparserTransform

@@ -7,8 +7,10 @@ import subprocess
 import sys
 from pathlib import Path
 
-from sked_ns.sked_config import sked_method
-from sked_ns.sked_model import SkedModelConfig
+import pytest
+
+from sked_ns.config import sked_method
+from sked_ns.nerfacto_model import SkedNerfactoModelConfig
 
 
 def test_entry_point_registers_sked():
@@ -16,7 +18,7 @@ def test_entry_point_registers_sked():
 
     methods, descriptions = discover_methods()
     assert "sked" in methods and "sketch" in descriptions["sked"].lower()
-    assert isinstance(methods["sked"].pipeline.model, SkedModelConfig)
+    assert isinstance(methods["sked"].pipeline.model, SkedNerfactoModelConfig)
 
 
 def test_defaults_follow_the_paper():
@@ -32,3 +34,77 @@ def test_ns_train_sked_help():
     result = subprocess.run([ns_train, "sked", "--help"], capture_output=True, text=True, timeout=300)
     assert result.returncode == 0, result.stderr[-2000:]
     assert "sketch-guided" in result.stdout and "--pipeline.model.beta" in result.stdout
+
+
+def test_guidance_is_one_subcommand_per_component():
+    """`pipeline.model.guidance:<name>` picks the component; its flags follow it (issue 11, item 4)."""
+    import tyro
+
+    from sked_ns.demo.reference_guidance import ReferenceGuidanceConfig
+    from sked_ns.guidance import StableDiffusionGuidanceConfig, guidance_components
+
+    assert guidance_components() == {"stable-diffusion": StableDiffusionGuidanceConfig,
+                                     "reference": ReferenceGuidanceConfig}
+    config = sked_method.config
+
+    def parse(*arguments):
+        return tyro.cli(type(config), default=config, args=list(arguments)).pipeline.model.guidance
+
+    assert isinstance(parse(), StableDiffusionGuidanceConfig) and parse().guidance_scale == 100.0
+    assert parse("pipeline.model.guidance:stable-diffusion", "--pipeline.model.guidance.guidance-scale", "7.5",
+                 ).guidance_scale == 7.5
+    reference = parse("pipeline.model.guidance:reference", "--pipeline.model.guidance.target", "vase")
+    assert isinstance(reference, ReferenceGuidanceConfig) and reference.target == "vase"
+
+
+def test_a_registered_guidance_is_offered_and_a_broken_one_is_skipped(monkeypatch):
+    """A new guidance is one module plus an entry point: nothing in sked_ns changes to offer it."""
+    from dataclasses import dataclass
+
+    import sked_ns.guidance as guidance_module
+    from sked_ns.guidance import GuidanceConfig, guidance_config, guidance_name
+
+    @dataclass
+    class DeepFloydConfig(GuidanceConfig):
+        stage: int = 1
+
+    class Entry:
+        def __init__(self, name, loaded):
+            self.name, self.value, self._loaded = name, f"plugin:{name}", loaded
+
+        def load(self):
+            if isinstance(self._loaded, Exception):
+                raise self._loaded
+            return self._loaded
+
+    entries = [Entry("deepfloyd", DeepFloydConfig), Entry("broken", ImportError("no module named plugin")),
+               Entry("not-a-config", dict)]
+    monkeypatch.setattr(guidance_module, "entry_points", lambda group: entries)
+    with pytest.warns(UserWarning) as caught:
+        components = guidance_module.guidance_components()
+    assert set(components) == {"stable-diffusion", "deepfloyd"}
+    assert {"broken", "not-a-config"} <= {word.strip("'") for w in caught for word in str(w.message).split()}
+    chosen = guidance_config("deepfloyd", stage=2)
+    assert isinstance(chosen, DeepFloydConfig) and chosen.stage == 2 and guidance_name(chosen) == "deepfloyd"
+    with pytest.raises(ValueError, match=r"unknown guidance 'if'.*installed.*sked_ns\.guidance"):
+        guidance_config("if")
+
+
+def test_the_method_never_imports_the_demo():
+    """The import graph has no arrow from the method into sked_ns/demo (issue 11, item 5)."""
+    import ast
+
+    package = Path(__file__).resolve().parents[1] / "sked_ns"
+    offenders = []
+    for path in package.rglob("*.py"):
+        if "demo" in path.relative_to(package).parts[:1]:
+            continue
+        for node in ast.walk(ast.parse(path.read_text())):
+            names = []
+            if isinstance(node, ast.Import):
+                names = [alias.name for alias in node.names]
+            elif isinstance(node, ast.ImportFrom) and node.module:
+                names = [node.module] + [f"{node.module}.{alias.name}" for alias in node.names]
+            offenders += [f"{path.relative_to(package)}: {name}" for name in names
+                          if name == "sked_ns.demo" or name.startswith("sked_ns.demo.")]
+    assert not offenders, offenders

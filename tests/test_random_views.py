@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from sked_ns.random_views import RandomViewSampler, orbit_position
-from sked_ns.sked_datamanager import SkedDataManagerConfig
+from sked_ns.datamanager import SkedDataManagerConfig
 
 CENTRE = np.array([0.3, -0.2, 0.5])
 

@@ -7,7 +7,7 @@ from nerfstudio.field_components.field_heads import FieldHeadNames
 
 from sked_ns.edit_run import edit_config, run_edit
 from sked_ns.render import load_pipeline
-from sked_ns.sked_trainer import resolve_edit
+from sked_ns.trainer import resolve_edit
 
 
 def _pipeline(scene, tmp_path, **model_settings):
@@ -86,7 +86,7 @@ def test_ngp_base_renders_deterministically_with_its_own_density(ngp_scene, tmp_
 
 
 def _sketch_rays(model):
-    from sked_ns.sked_datamanager import sketch_view_at
+    from sked_ns.cameras import sketch_view_at
 
     camera, _ = sketch_view_at(model.sketch_set.views[0], 24)
     return camera.generate_rays(camera_indices=0, keep_shape=True).flatten()

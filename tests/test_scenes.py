@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from sked_ns import demo_scene
+from sked_ns.demo import scene as demo_scene
 from sked_ns.edit_box import compute_edit_box
 from sked_ns.edit_run import edit_config, run_edit
 from sked_ns.metrics import intersection_over_sketch, psnr_outside
@@ -38,7 +38,7 @@ def test_reference_edit_reaches_each_target(scene, tmp_path, name):
     save_sketch_set(demo_scene.SCENES[name].sketch_set(64), tmp_path / "sketches")
     config = edit_config(scene["base"], scene["data"], tmp_path / "sketches", tmp_path / "out", iterations=60,
                          guidance_resolution=32, silhouette_resolution=32)
-    config.pipeline.model.reference.target = name
+    config.pipeline.model.guidance.target = name
     trainer = run_edit(config)
     base = load_pipeline(scene["base"])
     sketches = load_sketch_set(tmp_path / "sketches").in_model_frame(trainer.pipeline.datamanager.dataparser_transform)
@@ -55,7 +55,7 @@ def test_reference_edit_reaches_each_target(scene, tmp_path, name):
 
 @pytest.mark.parametrize("name", ["vase", "crate"])
 def test_held_out_scenes_write_base_target_and_sketches(name, tmp_path):
-    from sked_ns import benchmark_scenes
+    from sked_ns.demo import benchmark_scenes
     import json
 
     scene = benchmark_scenes.SCENES[name]
@@ -74,7 +74,7 @@ def test_held_out_scenes_write_base_target_and_sketches(name, tmp_path):
     points = torch.rand(300_000, 3) * 2 - 1
     on_edit = points[scene.edit_sdf(points) < 0]
     assert len(on_edit) > 50 and compute_edit_box(sketches.views).contains(on_edit.double()).all()
-    from sked_ns.benchmark_scenes import union
+    from sked_ns.demo.benchmark_scenes import union
 
     base_sdf = union(scene.base_parts)[0]
     assert base_sdf(on_edit).min() < 0.02, "the edit touches an existing surface"

@@ -158,7 +158,7 @@ def test_bounding_box_covers_every_contour():
 
 
 def test_dataparser_transform_inverts_and_maps_points(rng):
-    from sked_ns.demo_scene import orbit_pose
+    from sked_ns.demo.scene import orbit_pose
 
     angle = 0.7
     rotation = np.array([[1, 0, 0], [0, np.cos(angle), -np.sin(angle)], [0, np.sin(angle), np.cos(angle)]])

@@ -6,7 +6,7 @@ import cv2
 import numpy as np
 import pytest
 
-from sked_ns import demo_scene
+from sked_ns.demo import scene as demo_scene
 from sked_ns.sketches import DataparserTransform, load_sketch_set
 from sked_ns.sketching import (
     CANVASES_JSON,

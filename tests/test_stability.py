@@ -10,17 +10,17 @@ import numpy as np
 import pytest
 import torch
 
-from sked_ns import demo_scene
+from sked_ns.demo import scene as demo_scene
 from sked_ns.edit_run import edit_config
-from sked_ns.sked_model import SkedSettingsWarning
+from sked_ns.nerfacto_model import SkedSettingsWarning
 from sked_ns.sketches import SketchSet, SketchView, save_sketch_set
 
 ITERATIONS = 12
 
 
-def _trainer(scene, tmp_path, sketches=None, **model_settings):
+def _trainer(scene, tmp_path, sketches=None, guidance="reference", **model_settings):
     config = edit_config(scene["base"], scene["data"], sketches or scene["sketches"], tmp_path, iterations=ITERATIONS,
-                         guidance_resolution=8, silhouette_resolution=8)
+                         guidance=guidance, guidance_resolution=8, silhouette_resolution=8)
     for key, value in model_settings.items():
         target = config.pipeline.model
         *path, name = key.split("__")
@@ -66,7 +66,7 @@ CASES = {
     "lambda-pres-1e6": {"lambda_pres": 1e6},
     "lambda-sil-0": {"lambda_sil": 0.0},
     "lambda-sil-1e6": {"lambda_sil": 1e6},
-    "reference-weight-1e6": {"reference__weight": 1e6},
+    "reference-weight-1e6": {"guidance__weight": 1e6},
     "edit-box-density-1e6": {"edit_box_density": 1e6},
     "occupancy-threshold-0": {"occupancy_threshold": 0.0},
     "samples-per-ray-0.01": {"samples_per_ray_scale": 0.01},
@@ -109,8 +109,8 @@ def test_ngp_fp16_autocast_stays_finite(ngp_scene, tmp_path):
 def test_guidance_scale_extremes_stay_finite(scene, tmp_path, scale):
     from tiny_sd import build_tiny_stable_diffusion
 
-    trainer = _trainer(scene, tmp_path, guidance="stable-diffusion", prompt="a hat", sds__guidance_scale=scale,
-                       sds__model=str(build_tiny_stable_diffusion(tmp_path / "sd")), sds__image_size=32)
+    trainer = _trainer(scene, tmp_path, guidance="stable-diffusion", prompt="a hat", guidance__guidance_scale=scale,
+                       guidance__model=str(build_tiny_stable_diffusion(tmp_path / "sd")), guidance__image_size=32)
     _run_and_check(trainer)
 
 

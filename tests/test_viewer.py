@@ -47,7 +47,7 @@ def test_panel_without_a_browser_says_so(sketch_viewer):
 def test_panel_draws_two_views_and_saves_the_set(scene, sketch_viewer, monkeypatch):
     """Every panel action, with the browser's camera replaced by the hat's sketch cameras."""
     import sked_ns.sketch_viewer as sketch_viewer_module
-    from sked_ns import demo_scene
+    from sked_ns.demo import scene as demo_scene
     from sked_ns.sketching import PinholeCamera
 
     panel = sketch_viewer["panel"]
@@ -112,7 +112,7 @@ def test_sked_sketch_on_a_folder_that_is_not_a_run(tmp_path):
 def test_steering_controls_change_what_the_viewer_shows(scene, tmp_path):
     from sked_ns.edit_run import edit_config
     from sked_ns.render import render_at, render_base_at
-    from sked_ns.sked_trainer import resolve_edit
+    from sked_ns.trainer import resolve_edit
 
     config = edit_config(scene["base"], scene["data"], scene["sketches"], tmp_path, iterations=2)
     resolve_edit(config)
@@ -126,7 +126,7 @@ def test_steering_controls_change_what_the_viewer_shows(scene, tmp_path):
     model.viewer_show_base.value = True
     assert torch.equal(render_at(model, view, 24)["rgb"], base["rgb"])
     model.viewer_show_base.value = False
-    from sked_ns.sked_datamanager import sketch_view_at
+    from sked_ns.cameras import sketch_view_at
 
     camera = sketch_view_at(view, 24)[0]
     model.eval()
@@ -151,7 +151,7 @@ def test_steering_controls_change_what_the_viewer_shows(scene, tmp_path):
 
 def test_cpu_preview_is_a_downscaled_render_of_the_same_view(scene):
     """The captured view's backdrop, rendered narrower on a CPU, shows the same picture."""
-    from sked_ns import demo_scene
+    from sked_ns.demo import scene as demo_scene
     from sked_ns.sketch_viewer import _load, renderer
     from sked_ns.sketching import PinholeCamera
 

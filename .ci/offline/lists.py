@@ -23,8 +23,8 @@ ROOT = HERE.parents[1]
 RUNTIME_MODULES = [
     "nerfstudio.scripts.train", "nerfstudio.configs.method_configs", "nerfstudio.viewer.viewer",
     "nerfstudio.scripts.viewer.run_viewer", "nerfstudio.scripts.render", "nerfstudio.utils.writer",
-    "torch.utils.tensorboard", "sked_ns.sked_config", "sked_ns.sked_ngp", "sked_ns.guidance.stable_diffusion",
-    "sked_ns.evaluate", "sked_ns.clip_score", "sked_ns.sketch_viewer", "sked_ns.demo", "sked_ns.authors_import",
+    "torch.utils.tensorboard", "sked_ns.config", "sked_ns.ngp_model", "sked_ns.guidance.stable_diffusion",
+    "sked_ns.evaluate", "sked_ns.clip_score", "sked_ns.sketch_viewer", "sked_ns.demo.run", "sked_ns.authors_import",
     "diffusers.models.unets.unet_2d_condition", "diffusers.models.autoencoders.autoencoder_kl",
     "diffusers.schedulers.scheduling_ddpm", "transformers.models.clip.modeling_clip",
     "transformers.models.clip.tokenization_clip", "torchmetrics.image.lpip",

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Dict, Optional, Type
+from typing import ClassVar, Dict, Optional, Type
 
 import numpy as np
 from jaxtyping import Float
@@ -28,7 +28,11 @@ class RenderedView:
 
 @dataclass
 class GuidanceConfig(InstantiateConfig):
+    """A guidance component's settings; `setup()` builds its `Guidance`."""
+
     _target: Type = field(default_factory=lambda: Guidance)
+    uses_prompt: ClassVar[bool] = False
+    """Whether the text prompt is what it pulls towards (then no prompt means carving)."""
 
 
 class Guidance:

@@ -13,7 +13,7 @@ import gc
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Dict, Literal, Optional, Tuple, Type, get_args
+from typing import ClassVar, Dict, Literal, Optional, Tuple, Type, get_args
 
 import torch
 import torch.nn.functional as F
@@ -39,13 +39,14 @@ def sds_weight(alphas_cumprod: Tensor, weighting: str) -> Tensor:
         return 1 - alphas_cumprod
     raise ValueError(
         f"StableDiffusionGuidanceConfig.weighting: unknown SDS weighting {weighting!r}; use one of {SDS_WEIGHTINGS} "
-        "(--pipeline.model.sds.weighting)."
+        "(--pipeline.model.guidance.weighting)."
     )
 
 
 @dataclass
 class StableDiffusionGuidanceConfig(GuidanceConfig):
     _target: Type = field(default_factory=lambda: StableDiffusionGuidance)
+    uses_prompt: ClassVar[bool] = True
     model: str = "CompVis/stable-diffusion-v1-4"
     """Hub id or local folder of a diffusers Stable Diffusion checkpoint."""
     local_files_only: bool = False

@@ -17,15 +17,16 @@ from nerfstudio.pipelines.base_pipeline import VanillaPipeline, VanillaPipelineC
 from torch.cuda.amp.grad_scaler import GradScaler
 
 from sked_ns.base_scene import check_same_frame, resolve_base
-from sked_ns.sked_datamanager import SkedDataManagerConfig
-from sked_ns.sked_model import SkedModelConfig
+from sked_ns.core import is_carving
+from sked_ns.datamanager import SkedDataManagerConfig
+from sked_ns.nerfacto_model import SkedNerfactoModelConfig
 
 
 @dataclass
 class SkedPipelineConfig(VanillaPipelineConfig):
     _target: Type = field(default_factory=lambda: SkedPipeline)
     datamanager: SkedDataManagerConfig = field(default_factory=SkedDataManagerConfig)
-    model: SkedModelConfig = field(default_factory=SkedModelConfig)
+    model: SkedNerfactoModelConfig = field(default_factory=SkedNerfactoModelConfig)
 
 
 class SkedPipeline(VanillaPipeline):
@@ -59,10 +60,8 @@ class SkedPipeline(VanillaPipeline):
         if self._guidance_ready:
             return
         model = self.model
-        carving = model.config.guidance == "stable-diffusion" and not (model.config.prompt and model.config.prompt.strip())
-        if not carving:
-            guidance_config = model.config.sds if model.config.guidance == "stable-diffusion" else model.config.reference
-            guidance = guidance_config.setup()
+        if not is_carving(model.config):
+            guidance = model.config.guidance.setup()
             guidance.prepare(model.config.prompt, str(model.device), {"dataparser_transform": self.datamanager.dataparser_transform})
             model.guidance = guidance
         self._guidance_ready = True

@@ -31,7 +31,7 @@ from torch import Tensor
 from sked_ns.base_scene import read_model_state, uses_tcnn
 from sked_ns.edit_box import EditBox, compute_edit_box
 from sked_ns.frozen_base import FrozenBase
-from sked_ns.guidance import Guidance, ReferenceGuidanceConfig, RenderedView, StableDiffusionGuidanceConfig
+from sked_ns.guidance import Guidance, GuidanceChoice, RenderedView, StableDiffusionGuidanceConfig
 from sked_ns.losses import occupancy_log_probabilities, preservation_loss, silhouette_loss, sparsity_loss
 from sked_ns.photo_anchor import anchor_rays, correct_poses, editable_box, rays_away_from_edit
 from sked_ns.preservation import SketchDistanceField, check_beta
@@ -48,10 +48,9 @@ class SkedOptions:
     """What should be in the sketched region; none with Stable Diffusion guidance = carve it away."""
     base_checkpoint: Optional[Path] = None
     """The base's step-*.ckpt; filled in from --load-dir."""
-    guidance: Literal["stable-diffusion", "reference"] = "stable-diffusion"
-    """Which guidance pulls the sketched region (reference: renders of a known target scene)."""
-    sds: StableDiffusionGuidanceConfig = field(default_factory=StableDiffusionGuidanceConfig)
-    reference: ReferenceGuidanceConfig = field(default_factory=ReferenceGuidanceConfig)
+    guidance: GuidanceChoice = field(default_factory=StableDiffusionGuidanceConfig)
+    """What pulls the sketched region: a subcommand, `pipeline.model.guidance:stable-diffusion` (default) or
+    another installed guidance (`pipeline.model.guidance:reference`: renders of a known target scene)."""
     beta: float = 0.025
     """Falloff of the preservation weight, in image widths (paper Eq. 4)."""
     lambda_pres: float = 5.0
@@ -130,7 +129,7 @@ class SkedMixin:
     def _setup_sked(self) -> None:
         """Call after the parent's populate_modules."""
         self.lpips = None
-        from sked_ns.sked_datamanager import model_frame_sketches
+        from sked_ns.datamanager import model_frame_sketches
 
         self.sketch_set = sketch_set = model_frame_sketches(self.config.sketches, self.kwargs.get("metadata") or {})
         self.edit_box: EditBox = compute_edit_box(sketch_set.views, scene_box=self.scene_box.aabb.numpy())
@@ -233,7 +232,7 @@ class SkedMixin:
         return self
 
     def _hash_grid_groups(self, **non_grid: torch.nn.Module) -> Dict[str, List[torch.nn.Parameter]]:
-        """Hash grids get their own group: method.md trains them at 10x the MLPs' rate."""
+        """Hash grids get their own group: docs/method.md (Optimisation) trains them at 10x the MLPs' rate."""
         grids = {id(p) for module in self.modules() if isinstance(module, HashEncoding) for p in module.parameters()}
         trainable = lambda module: [p for p in module.parameters() if p.requires_grad]  # noqa: E731
         groups = {name: [p for p in trainable(module) if id(p) not in grids] for name, module in non_grid.items()}
@@ -429,8 +428,8 @@ class SkedMixin:
 
 
 def is_carving(config: SkedOptions) -> bool:
-    """Stable Diffusion guidance without a prompt removes what is in the sketches."""
-    return config.guidance == "stable-diffusion" and not (config.prompt and config.prompt.strip())
+    """A prompt-driven guidance (Stable Diffusion) without a prompt removes what is in the sketches."""
+    return config.guidance.uses_prompt and not (config.prompt and config.prompt.strip())
 
 
 def warn_degenerate_settings(config: SkedOptions, sketch_set: SketchSet) -> List[str]:

@@ -58,7 +58,7 @@ class ReferenceGuidance(Guidance):
 
 def reference_scene(name: str):
     """The known edit called `name`: a demo-sphere scene or a held-out benchmark scene."""
-    from sked_ns.benchmark_scenes import scene_named
+    from sked_ns.demo.benchmark_scenes import scene_named
 
     try:
         return scene_named(name)

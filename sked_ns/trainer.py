@@ -22,9 +22,9 @@ from nerfstudio.utils.rich_utils import CONSOLE
 from sked_ns.base_scene import copy_base_architecture, resolve_base
 from sked_ns.compat import train_loop_adds_start_step
 from sked_ns.safe_step import GuardedGradScaler, GuardedOptimizers, StepGuard
-from sked_ns.sked_core import SkedOptions
-from sked_ns.sked_model import SkedModelConfig
-from sked_ns.sked_ngp import SkedNGPModelConfig
+from sked_ns.core import SkedOptions
+from sked_ns.nerfacto_model import SkedNerfactoModelConfig
+from sked_ns.ngp_model import SkedNGPModelConfig
 
 
 @dataclass
@@ -42,7 +42,7 @@ class SkedTrainerConfig(TrainerConfig):
 
 def resolve_edit(config: SkedTrainerConfig) -> None:
     """Fill the model config from --load-dir and the aliases; safe to call twice."""
-    # Learning rates decay to 0.1x by the end of this edit (method.md), however long --max-num-iterations makes it.
+    # Learning rates decay to 0.1x by the end of this edit (docs/method.md, Optimisation), however long --max-num-iterations makes it.
     for optimizer in config.optimizers.values():
         if hasattr(optimizer.get("scheduler"), "max_steps"):
             optimizer["scheduler"].max_steps = config.max_num_iterations
@@ -73,7 +73,7 @@ def resolve_edit(config: SkedTrainerConfig) -> None:
 
 def edit_model_config(model, base_model_config):
     """The SKED model for the base's sampler (grid or proposals), shaped like the base, keeping SKED's options."""
-    wanted = SkedNGPModelConfig if isinstance(base_model_config, InstantNGPModelConfig) else SkedModelConfig
+    wanted = SkedNGPModelConfig if isinstance(base_model_config, InstantNGPModelConfig) else SkedNerfactoModelConfig
     if not isinstance(model, wanted):
         options = {option.name: getattr(model, option.name) for option in fields(SkedOptions)}
         model = wanted(**options, eval_num_rays_per_chunk=model.eval_num_rays_per_chunk)
@@ -100,7 +100,10 @@ class SkedTrainer(Trainer):
             self._show_sketches_in_viewer()
 
     def _show_sketches_in_viewer(self) -> None:
-        """The sketch views (frusta showing their masks) and the edit box, beside the training cameras."""
+        """The sketch views (frusta showing their masks) and the edit box, beside the training cameras.
+
+        Through viser directly: nerfstudio's ViewerControl offers no scene objects (the model's controls,
+        beta and the show-base / tint switches, are nerfstudio viewer elements, core.py)."""
         from sked_ns.sketch_viewer import show_sketch_views
 
         model = self.pipeline.model

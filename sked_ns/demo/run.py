@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import warnings
 from pathlib import Path
 from typing import Optional
 
@@ -20,8 +19,8 @@ import cv2
 import numpy as np
 import torch
 
-from sked_ns import demo_scene
-from sked_ns.demo_base import build_demo_base
+from sked_ns.demo import scene as demo_scene
+from sked_ns.demo.base import build_demo_base
 from sked_ns.edit_box import compute_edit_box
 from sked_ns.metrics import intersection_over_sketch, psnr_outside
 from sked_ns.novel_views import eval_split_views, evaluate_novel_views
@@ -116,7 +115,8 @@ def run(output: Path, beta: float = 0.025, size: int = 128, iterations: int = 10
     config = edit_config(base_run / "nerfstudio_models", data, output / "sketches", output / "edits",
                          prompt=prompt, guidance=guidance, iterations=iterations, device=device)
     config.pipeline.model.beta = beta
-    config.pipeline.model.sds.model = diffusion_model
+    if guidance == "stable-diffusion":
+        config.pipeline.model.guidance.model = diffusion_model
     trainer = run_edit(config)
 
     base_model = load_pipeline(base_run, device).model
@@ -147,15 +147,8 @@ def run(output: Path, beta: float = 0.025, size: int = 128, iterations: int = 10
     return summary
 
 
-def quiet_third_party_warnings() -> None:
-    """nerfstudio 1.1.5 on torch 2.14 warns on every camera call; keep the demo's output readable."""
-    warnings.filterwarnings("ignore", category=FutureWarning)
-    warnings.filterwarnings("ignore", message=".*non-tuple sequence for multidimensional indexing.*")
-    warnings.filterwarnings("ignore", message=".*DataLoader will create.*")
-    warnings.filterwarnings("ignore", message=".*Converting a tensor with requires_grad=True to a scalar.*")
-
-
 def entrypoint() -> None:
+    from sked_ns.compat import quiet_third_party_warnings
     from sked_ns.evaluate import novel_summary
 
     quiet_third_party_warnings()

@@ -22,8 +22,8 @@ from nerfstudio.data.datamanagers.base_datamanager import VanillaDataManagerConf
 from nerfstudio.field_components.field_heads import FieldHeadNames
 from nerfstudio.cameras.rays import Frustums, RaySamples
 
-from sked_ns import demo_scene
-from sked_ns.sked_model import _without_lpips
+from sked_ns.demo import scene as demo_scene
+from sked_ns.nerfacto_model import _without_lpips
 from sked_ns.sketches import DataparserTransform
 
 PEAK_DENSITY = 100.0

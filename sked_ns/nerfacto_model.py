@@ -17,7 +17,7 @@ from torch import Tensor
 from torch.nn import Parameter
 
 from sked_ns.preservation import check_beta
-from sked_ns.sked_core import (  # noqa: F401  (re-exported: the public names of the edit model)
+from sked_ns.core import (  # noqa: F401  (re-exported: the public names of the edit model)
     SkedMixin,
     SkedOptions,
     SkedSettingsWarning,
@@ -27,20 +27,21 @@ from sked_ns.sked_core import (  # noqa: F401  (re-exported: the public names of
 
 
 @dataclass
-class SkedModelConfig(NerfactoModelConfig, SkedOptions):
+class SkedNerfactoModelConfig(NerfactoModelConfig, SkedOptions):
     """SKED on a nerfacto-style field. Architecture fields are copied from the base (base_scene.copy_base_architecture)."""
 
-    _target: Type = field(default_factory=lambda: SkedModel)
+    _target: Type = field(default_factory=lambda: SkedNerfactoModel)
     edit_box_density: float = 2.0
-    """Proposal density added inside the edit box during warm-up, per unit of box diagonal."""
+    """Proposal density added inside the sketches' visual hull (within the edit box) during warm-up, per unit
+    of box diagonal."""
     camera_optimizer: CameraOptimizerConfig = field(default_factory=lambda: CameraOptimizerConfig(mode="off"))
     """Edits keep the base's cameras."""
 
 
-class SkedModel(SkedMixin, NerfactoModel):
+class SkedNerfactoModel(SkedMixin, NerfactoModel):
     """Editable nerfacto field + frozen base + sketch geometry + guidance."""
 
-    config: SkedModelConfig
+    config: SkedNerfactoModelConfig
     BASE_PREFIXES = ("field.", "proposal_networks.")
 
     def populate_modules(self) -> None:

@@ -1,8 +1,8 @@
-"""SKED on an instant-ngp base: occupancy-grid sampling with the edit box switched on.
+"""SKED on an instant-ngp base: occupancy-grid sampling with the sketches' visual hull switched on.
 
 An NGP base's occupancy grid is off wherever the base is empty, so new content could never
-be sampled there. During the warm-up the edit box's cells are switched on and no cell is
-pruned; after it, the grid follows the edited field as in instant-ngp. The grid sampler is
+be sampled there. During the warm-up the cells of the sketches' visual hull (inside the edit
+box) are switched on and no cell is pruned; after it, the grid follows the edited field as in instant-ngp. The grid sampler is
 nerfacc's on CUDA and a plain-torch one elsewhere (`sked_ns.occupancy`).
 """
 
@@ -24,7 +24,7 @@ from torch.nn import Parameter
 from sked_ns.edit_box import occupancy_grid_mask
 from sked_ns.occupancy import PortableOccGridEstimator, render_weights
 from sked_ns.preservation import check_beta
-from sked_ns.sked_core import SkedMixin, SkedOptions, without_lpips
+from sked_ns.core import SkedMixin, SkedOptions, without_lpips
 
 
 @dataclass
@@ -99,7 +99,7 @@ class SkedNGPModel(SkedMixin, NGPModel):
 
     @torch.no_grad()
     def update_occupancy_grid(self, step: int) -> None:
-        """instant-ngp's EMA update; during the warm-up no cell turns off and the edit box stays on."""
+        """instant-ngp's EMA update; during the warm-up no cell turns off and the visual hull's cells stay on."""
         grid = self.occupancy_grid
         before = grid.binaries.clone()
         # The base's cells are already known: sample them like instant-ngp after its own warm-up.

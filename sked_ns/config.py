@@ -1,7 +1,7 @@
 """Registers `sked`, `sked-fast` and `sked-quality` with nerfstudio, one per preset in configs/.
 
 A preset names the knobs users trade speed for accuracy with (iterations, render sizes,
-samples per ray, mixed precision); everything else is the paper's (method.md). Presets are
+samples per ray, mixed precision); everything else is as docs/method.md gives it. Presets are
 YAML files installed with the package (`sked_ns.configs`), so they work after a normal install.
 """
 
@@ -19,13 +19,13 @@ from nerfstudio.engine.optimizers import AdamOptimizerConfig
 from nerfstudio.engine.schedulers import ExponentialDecaySchedulerConfig
 from nerfstudio.plugins.types import MethodSpecification
 
-from sked_ns.sked_core import SkedOptions
-from sked_ns.sked_datamanager import SkedDataManagerConfig
-from sked_ns.sked_model import SkedModelConfig
-from sked_ns.sked_pipeline import SkedPipelineConfig
-from sked_ns.sked_trainer import SkedTrainerConfig
+from sked_ns.core import SkedOptions
+from sked_ns.datamanager import SkedDataManagerConfig
+from sked_ns.nerfacto_model import SkedNerfactoModelConfig
+from sked_ns.pipeline import SkedPipelineConfig
+from sked_ns.trainer import SkedTrainerConfig
 
-LEARNING_RATE = 5e-3  # method.md: Adam 5e-3, hash grids 10x
+LEARNING_RATE = 5e-3  # docs/method.md, Optimisation: Adam 5e-3, hash grids 10x
 PRESETS = ("sked", "sked-fast", "sked-quality")
 PRESET_KEYS = {"description", "iterations", "mixed_precision", "model"}
 
@@ -39,7 +39,7 @@ class SkedAdamOptimizerConfig(AdamOptimizerConfig):
 
 
 def _adam(lr: float, iterations: int) -> dict:
-    # lr decays exponentially to 0.1x by the end of the edit (method.md, Optimisation).
+    # lr decays exponentially to 0.1x by the end of the edit (docs/method.md, Optimisation).
     return {
         "optimizer": SkedAdamOptimizerConfig(lr=lr, eps=1e-15),
         "scheduler": ExponentialDecaySchedulerConfig(lr_final=lr * 0.1, max_steps=iterations),
@@ -63,7 +63,7 @@ def read_preset(name: str, folder=None) -> Dict:
 
 def sked_trainer_config(preset: Dict, method_name: str) -> SkedTrainerConfig:
     iterations = int(preset["iterations"])
-    model = SkedModelConfig()
+    model = SkedNerfactoModelConfig()
     for key, value in preset.get("model", {}).items():
         setattr(model, key, copy.deepcopy(value))
     return SkedTrainerConfig(

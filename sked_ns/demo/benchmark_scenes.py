@@ -27,7 +27,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from sked_ns.demo_scene import orbit_pose, trace
+from sked_ns.demo.scene import orbit_pose, trace
 from sked_ns.sketches import SketchSet, SketchView, save_sketch_set
 
 SDF = Callable[[Tensor], Tensor]
@@ -212,7 +212,7 @@ def _png(path: Path, rgb: Tensor) -> None:
 
 def scene_named(name: str):
     """A known edit: a held-out scene here, or one of the demo sphere's (demo_scene.SCENES, tuned on)."""
-    from sked_ns import demo_scene
+    from sked_ns.demo import scene as demo_scene
 
     scenes = {**demo_scene.SCENES, **SCENES}
     if name not in scenes:

@@ -12,16 +12,15 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Dict, Optional, Tuple, Type
 
-import cv2
 import numpy as np
 import torch
-from nerfstudio.cameras.cameras import Cameras, CameraType
 from nerfstudio.cameras.rays import RayBundle
 from nerfstudio.data.datamanagers.base_datamanager import VanillaDataManager, VanillaDataManagerConfig
 
+from sked_ns.cameras import cameras_of, sketch_view_at
 from sked_ns.edit_box import EditBox
 from sked_ns.random_views import ELEVATION_RANGE_DEG, FOV_RANGE_DEG, RandomViewSampler, focal_from_fov
-from sked_ns.sketches import DataparserTransform, SketchSet, SketchView, load_sketch_set
+from sked_ns.sketches import DataparserTransform, SketchSet, load_sketch_set
 
 
 @dataclass
@@ -40,30 +39,6 @@ class SkedDataManagerConfig(VanillaDataManagerConfig):
     train_num_rays_per_batch: int = 512
     """Rays of the base's photos per step (the photo anchor, of which ~3/4 are kept): a small batch beside the
     renders SKED needs anyway (nerfstudio's 1,024 or nerfacto's 4,096 would double a step's cost)."""
-
-
-def cameras_of(poses: torch.Tensor, fx, fy, cx, cy, width: int, height: int) -> Cameras:
-    return Cameras(
-        camera_to_worlds=poses,
-        fx=torch.as_tensor(fx, dtype=torch.float32).reshape(-1, 1),
-        fy=torch.as_tensor(fy, dtype=torch.float32).reshape(-1, 1),
-        cx=torch.as_tensor(cx, dtype=torch.float32).reshape(-1, 1),
-        cy=torch.as_tensor(cy, dtype=torch.float32).reshape(-1, 1),
-        width=torch.full((poses.shape[0], 1), width, dtype=torch.long),
-        height=torch.full((poses.shape[0], 1), height, dtype=torch.long),
-        camera_type=CameraType.PERSPECTIVE,
-    )
-
-
-def sketch_view_at(view: SketchView, resolution: int) -> Tuple[Cameras, torch.Tensor]:
-    """A sketch view's camera and mask rescaled so the longer side is `resolution` pixels."""
-    scale = resolution / max(view.width, view.height)
-    width, height = max(1, round(view.width * scale)), max(1, round(view.height * scale))
-    sx, sy = width / view.width, height / view.height
-    mask = cv2.resize(view.mask.astype(np.float32), (width, height), interpolation=cv2.INTER_AREA) > 0.5
-    camera = cameras_of(torch.tensor(view.camera_to_world[None], dtype=torch.float32),
-                        view.fl_x * sx, view.fl_y * sy, view.cx * sx, view.cy * sy, width, height)
-    return camera, torch.from_numpy(mask)
 
 
 SKETCH_FRAME = "sked_dataparser_transform"
