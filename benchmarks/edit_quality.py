@@ -75,11 +75,12 @@ def edit(base: Path, paths: Dict[str, Path], scene: str, protocol: Dict, output:
     arguments = ["sked", "--load-dir", str(base), "--sketches", str(paths["sketches"]), "--output-dir", str(output),
                  "--experiment-name", scene, "--max-num-iterations", str(iterations), "--vis", "tensorboard",
                  "--machine.device-type", "cpu", "--steps-per-save", str(iterations),
-                 "pipeline.model.guidance:reference", "--pipeline.model.guidance.target", scene,
                  "--pipeline.model.guidance-resolution", str(resolution),
                  "--pipeline.model.silhouette-resolution", str(resolution),
                  "--pipeline.model.samples-per-ray-scale", str(protocol.get("samples_per_ray_scale", 1.0)),
                  "--pipeline.model.edit-box-warmup", str(max(1, iterations // 10)), *(extra or []),
+                 # Subcommands last, each followed by its own flags: the guidance, then the dataparser.
+                 "pipeline.model.guidance:reference", "--pipeline.model.guidance.target", scene,
                  "nerfstudio-data", "--data", str(paths["data"])]
     run(ns_train(arguments), log)
     return max((output / scene / "sked").iterdir())

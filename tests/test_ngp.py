@@ -133,10 +133,11 @@ def test_ns_train_sked_on_an_ngp_run_folder(ngp_scene, tmp_path):
     ns_train = shutil.which("ns-train", path=str(Path(sys.executable).parent)) or shutil.which("ns-train")
     command = [
         ns_train, "sked", "--load-dir", str(ngp_scene["base"]), "--sketches", str(ngp_scene["sketches"]),
-        "pipeline.model.guidance:reference", "--pipeline.model.guidance-resolution", "16",
+        "--pipeline.model.guidance-resolution", "16",
         "--pipeline.model.silhouette-resolution", "16", "--max-num-iterations", "3", "--steps-per-save", "2",
         "--machine.device-type", "cpu", "--mixed-precision", "False", "--vis", "tensorboard",
-        "--output-dir", str(tmp_path), "nerfstudio-data", "--data", str(ngp_scene["data"]),
+        "--output-dir", str(tmp_path), "pipeline.model.guidance:reference",
+        "nerfstudio-data", "--data", str(ngp_scene["data"]),
     ]
     result = subprocess.run(command, capture_output=True, text=True, timeout=600)
     assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
@@ -183,17 +184,19 @@ def test_ns_train_sked_on_a_bounded_run_with_instant_ngp_data(ngp_scene, bounded
     ns_train = shutil.which("ns-train", path=str(Path(sys.executable).parent)) or shutil.which("ns-train")
     common = [
         ns_train, "sked", "--load-dir", str(bounded_base), "--sketches", str(ngp_scene["sketches"]),
-        "pipeline.model.guidance:reference", "--pipeline.model.guidance-resolution", "16",
+        "--pipeline.model.guidance-resolution", "16",
         "--pipeline.model.silhouette-resolution", "16", "--max-num-iterations", "2", "--steps-per-save", "2",
         "--machine.device-type", "cpu", "--mixed-precision", "False", "--vis", "tensorboard",
     ]
-    result = subprocess.run(common + ["--output-dir", str(tmp_path / "ok"), "instant-ngp-data", "--data",
+    result = subprocess.run(common + ["--output-dir", str(tmp_path / "ok"), "pipeline.model.guidance:reference",
+                                      "instant-ngp-data", "--data",
                                       str(ngp_scene["data"])], capture_output=True, text=True, timeout=600)
     assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
     (config_path,) = (tmp_path / "ok").rglob("config.yml")
     assert "InstantNGPDataParserConfig" in config_path.read_text()
     # nerfstudio-data orients, centres and scales the same images differently: refused, with what to type.
-    wrong = subprocess.run(common + ["--output-dir", str(tmp_path / "wrong"), "nerfstudio-data", "--data",
+    wrong = subprocess.run(common + ["--output-dir", str(tmp_path / "wrong"), "pipeline.model.guidance:reference",
+                                     "nerfstudio-data", "--data",
                                      str(ngp_scene["data"])], capture_output=True, text=True, timeout=600)
     assert wrong.returncode != 0
     assert "dataparser_transforms.json" in wrong.stderr and "instant-ngp-data --data" in wrong.stderr, wrong.stderr[-3000:]
