@@ -69,20 +69,25 @@ def train_base(data: Path, output: Path, iterations: int, log: Path) -> Path:
     return run_dir
 
 
+def edit_arguments(base: Path, paths: Dict[str, Path], scene: str, protocol: Dict, output: Path,
+                   extra: Optional[List[str]] = None) -> List[str]:
+    """The `ns-train` arguments of one edit, as a user types them."""
+    iterations, resolution = protocol["iterations"], protocol["resolution"]
+    return ["sked", "--load-dir", str(base), "--sketches", str(paths["sketches"]), "--output-dir", str(output),
+            "--experiment-name", scene, "--max-num-iterations", str(iterations), "--vis", "tensorboard",
+            "--machine.device-type", "cpu", "--steps-per-save", str(iterations),
+            "--pipeline.model.guidance-resolution", str(resolution),
+            "--pipeline.model.silhouette-resolution", str(resolution),
+            "--pipeline.model.samples-per-ray-scale", str(protocol.get("samples_per_ray_scale", 1.0)),
+            "--pipeline.model.edit-box-warmup", str(max(1, iterations // 10)), *(extra or []),
+            # Subcommands last, each followed by its own flags: the guidance, then the dataparser.
+            "pipeline.model.guidance:reference", "--pipeline.model.guidance.target", scene,
+            "nerfstudio-data", "--data", str(paths["data"])]
+
+
 def edit(base: Path, paths: Dict[str, Path], scene: str, protocol: Dict, output: Path, log: Path,
          extra: Optional[List[str]] = None) -> Path:
-    iterations, resolution = protocol["iterations"], protocol["resolution"]
-    arguments = ["sked", "--load-dir", str(base), "--sketches", str(paths["sketches"]), "--output-dir", str(output),
-                 "--experiment-name", scene, "--max-num-iterations", str(iterations), "--vis", "tensorboard",
-                 "--machine.device-type", "cpu", "--steps-per-save", str(iterations),
-                 "--pipeline.model.guidance-resolution", str(resolution),
-                 "--pipeline.model.silhouette-resolution", str(resolution),
-                 "--pipeline.model.samples-per-ray-scale", str(protocol.get("samples_per_ray_scale", 1.0)),
-                 "--pipeline.model.edit-box-warmup", str(max(1, iterations // 10)), *(extra or []),
-                 # Subcommands last, each followed by its own flags: the guidance, then the dataparser.
-                 "pipeline.model.guidance:reference", "--pipeline.model.guidance.target", scene,
-                 "nerfstudio-data", "--data", str(paths["data"])]
-    run(ns_train(arguments), log)
+    run(ns_train(edit_arguments(base, paths, scene, protocol, output, extra)), log)
     return max((output / scene / "sked").iterdir())
 
 

@@ -72,3 +72,27 @@ def test_gpu_check_smoke_run_on_the_cpu(tmp_path):
     assert data["ms_per_iteration"] == data["nerfacto"]["ms_per_iteration"] and data["sd_floor_ms"] > 0
     assert "RANDOM weights" in data["description"]
     assert output.with_name("gpu_check_profile.txt").stat().st_size > 1000
+
+
+def test_benchmark_command_lines_parse_as_ns_train_parses_them(tmp_path):
+    """The benchmarks type `ns-train sked` as a user does: nerfstudio's own CLI must read what they mean."""
+    import tyro
+    from nerfstudio.configs.method_configs import AnnotatedBaseConfigUnion
+
+    import edit_quality
+    import gpu_check
+
+    paths = {"sketches": tmp_path / "sketches", "data": tmp_path / "data"}
+    protocol = {**edit_quality.PROTOCOLS["cpu-100"]}
+    config = tyro.cli(AnnotatedBaseConfigUnion, args=edit_quality.edit_arguments(
+        tmp_path / "base", paths, "vase", protocol, tmp_path / "out", extra=["--pipeline.model.lambda-photo", "0"]))
+    model = config.pipeline.model
+    assert type(model.guidance).__name__ == "ReferenceGuidanceConfig" and model.guidance.target == "vase"
+    assert model.lambda_photo == 0 and model.guidance_resolution == protocol["resolution"]
+    assert config.pipeline.datamanager.dataparser.data == paths["data"]
+
+    arguments = gpu_check.edit_arguments(tmp_path / "base", tmp_path, tmp_path / "sd", "nerfacto", 7, "tiny", "cpu")
+    config = tyro.cli(AnnotatedBaseConfigUnion, args=["sked", *arguments])
+    guidance = config.pipeline.model.guidance
+    assert type(guidance).__name__ == "StableDiffusionGuidanceConfig"
+    assert guidance.model == str(tmp_path / "sd") and guidance.image_size == 32 and config.max_num_iterations == 7
