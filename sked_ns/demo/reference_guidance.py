@@ -63,4 +63,4 @@ def reference_scene(name: str):
     try:
         return scene_named(name)
     except ValueError as error:
-        raise ValueError(f"--pipeline.model.reference.target: {error}") from None
+        raise ValueError(f"--pipeline.model.guidance.target: {error}") from None

@@ -98,8 +98,8 @@ class StableDiffusionGuidance(Guidance):
                 f"Cannot load the diffusion model's '{subfolder}' from {where} ({type(error).__name__}: {error}). "
                 "Provide the weights: download a diffusers Stable Diffusion checkpoint once where the hub is "
                 f"reachable (`huggingface-cli download {source}` fills the cache read offline), or pass a local "
-                "folder with --pipeline.model.sds.model /path/to/stable-diffusion. "
-                "Without weights, use --pipeline.model.guidance reference."
+                "folder with `pipeline.model.guidance:stable-diffusion --pipeline.model.guidance.model "
+                "/path/to/stable-diffusion`. Without weights, use `pipeline.model.guidance:reference`."
             ) from error
 
     def weights_available(self) -> bool:
