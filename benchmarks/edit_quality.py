@@ -130,7 +130,11 @@ def table(results: Dict) -> str:
     return "\n".join(lines)
 
 
-VARIANTS = {"default": [], "paper (no photo anchor)": ["--pipeline.model.lambda-photo", "0"]}
+VARIANTS = {"default": [],
+            "paper (occupancy target, no photo anchor)": ["--pipeline.model.preservation-target", "occupancy",
+                                                          "--pipeline.model.lambda-photo", "0"],
+            "occupancy-target (the paper's L_pres, photo anchor on)": ["--pipeline.model.preservation-target",
+                                                                       "occupancy"]}
 
 
 def main() -> None:

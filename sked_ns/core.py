@@ -57,6 +57,9 @@ class SkedOptions:
     """Weight of L_pres (a mean over samples; the authors' 5e-6 multiplied a sum)."""
     lambda_colour: float = 5.0
     """Weight of the colour term inside L_pres."""
+    preservation_target: Literal["occupancy", "density"] = "density"
+    """What L_pres holds the edit to: the base's own density (a soft base stays soft) or, as the paper, its occupancy
+    thresholded at occupancy_threshold (sharpens a soft base: -1.2 vs -0.2 dB kept; docs/method.md, L_pres)."""
     lambda_sil: float = 1.0
     """Weight of L_sil."""
     lambda_sp: float = 5e-4
@@ -377,7 +380,7 @@ class SkedMixin:
         losses["preservation_loss"] = config.effective_lambda_pres * preservation_loss(
             density_edit, field_outputs[FieldHeadNames.RGB], base_outputs[FieldHeadNames.DENSITY],
             base_outputs[FieldHeadNames.RGB], weight, config.occupancy_threshold, config.preservation_delta,
-            config.lambda_colour,
+            config.lambda_colour, config.preservation_target,
         )
         losses["sparsity_loss"] = config.lambda_sp * sparsity_loss(view["accumulation"])
         if is_carving(config):

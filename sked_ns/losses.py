@@ -51,9 +51,19 @@ def preservation_loss(
     occupancy_threshold: float = 5.0,
     delta: float = 0.07,
     lambda_colour: float = 5.0,
+    target: str = "occupancy",
 ) -> Tensor:
-    """L_pres = mean_i w_i [CE(alpha_e,i, occ_o,i) + lambda_c occ_o,i ||c_e,i - c_o,i||^2] (paper Eq. 3)."""
-    occupied = (density_base.float() > occupancy_threshold).float()
+    """L_pres = mean_i w_i [CE(alpha_e,i, occ_o,i) + lambda_c occ_o,i ||c_e,i - c_o,i||^2] (paper Eq. 3).
+
+    target "occupancy" (paper): occ_o = 1[sigma_o > threshold]. "density": occ_o = the base's own squashed alpha
+    at delta, so the minimum is sigma_e = sigma_o and a soft base is kept soft, not sharpened to binary occupancy.
+    """
+    if target == "occupancy":
+        occupied = (density_base.float() > occupancy_threshold).float()
+    elif target == "density":
+        occupied = occupancy_log_probabilities(density_base.detach(), delta)[0].exp()
+    else:
+        raise ValueError(f"preservation_target must be 'occupancy' or 'density', not {target!r}")
     log_p, log_not_p = occupancy_log_probabilities(density_edit, delta)
     cross_entropy = -(occupied * log_p + (1.0 - occupied) * log_not_p)
     colour = occupied * (rgb_edit.float() - rgb_base.float()).pow(2).sum(dim=-1, keepdim=True)
