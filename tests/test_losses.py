@@ -33,6 +33,44 @@ def test_preservation_loss_is_zero_weighted_on_the_sketch():
     assert loss.item() == 0.0
 
 
+def test_density_target_keeps_a_soft_base_where_the_occupancy_target_sharpens_it():
+    # Base densities either side of the occupancy threshold (5), the edit equal to the base: the paper's target
+    # pushes 3 -> 0 and 8 -> inf (a soft shell becomes a hard one); the base's own density is a stationary point.
+    density_base = torch.tensor([[0.0], [3.0], [8.0], [200.0]])
+    rgb = torch.rand(4, 3)
+    gradients = {}
+    for target in ("occupancy", "density"):
+        density_edit = density_base.clone().requires_grad_(True)
+        preservation_loss(density_edit, rgb, density_base, rgb, torch.ones(4, 1), delta=DELTA, target=target).backward()
+        gradients[target] = density_edit.grad.squeeze(-1)
+    assert gradients["occupancy"][1] > 0 and gradients["occupancy"][2] < 0
+    assert gradients["density"].abs().max() < 1e-6
+    # And it is a minimum: moving the edit's density either way costs.
+    for scale in (0.5, 2.0):
+        moved = preservation_loss(density_base * scale, rgb, density_base, rgb, torch.ones(4, 1), delta=DELTA,
+                                  target="density")
+        assert moved > preservation_loss(density_base, rgb, density_base, rgb, torch.ones(4, 1), delta=DELTA,
+                                         target="density")
+
+
+def test_density_target_gates_colour_by_the_base_alpha():
+    # Colour of a faint base sample (sigma 3, alpha 0.19 at delta 0.07) is held, not free as under the threshold.
+    args = (torch.full((1, 1), 3.0), torch.zeros(1, 3), torch.full((1, 1), 3.0), torch.ones(1, 3), torch.ones(1, 1))
+    soft = preservation_loss(*args, delta=DELTA, target="density") - preservation_loss(
+        args[0], args[3], args[2], args[3], args[4], delta=DELTA, target="density")
+    p = PROBABILITY_EPS + (1 - 2 * PROBABILITY_EPS) * -math.expm1(-3.0 * DELTA)
+    assert soft.item() == pytest.approx(5.0 * p * 3.0, rel=1e-5)
+    hard = preservation_loss(*args, delta=DELTA, target="occupancy") - preservation_loss(
+        args[0], args[3], args[2], args[3], args[4], delta=DELTA, target="occupancy")
+    assert hard.item() == 0.0
+
+
+def test_preservation_target_names_the_field():
+    with pytest.raises(ValueError, match="preservation_target"):
+        preservation_loss(torch.zeros(1, 1), torch.zeros(1, 3), torch.zeros(1, 1), torch.zeros(1, 3), torch.ones(1, 1),
+                          target="binary")
+
+
 def test_silhouette_loss_by_hand():
     accumulation = torch.tensor([[[1.0, 0.5], [0.0, 0.25]]])
     masks = torch.tensor([[[1.0, 1.0], [0.0, 1.0]]])
@@ -49,15 +87,17 @@ def test_sparsity_loss_by_hand():
     assert sparsity_loss(torch.tensor([0.0, 1.0])).item() < 2e-3
 
 
+@pytest.mark.parametrize("target", ["occupancy", "density"])
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float16])
 @pytest.mark.parametrize("density_value", [0.0, 1e-6, 5.0, 1e6, math.inf])
-def test_preservation_loss_finite_with_gradient(dtype, density_value):
+def test_preservation_loss_finite_with_gradient(dtype, density_value, target):
     density_value = min(density_value, torch.finfo(dtype).max) if math.isfinite(density_value) else density_value
     density_edit = torch.full((4, 6, 1), density_value, dtype=dtype, requires_grad=True)
     rgb_edit = torch.rand(4, 6, 3, dtype=dtype, requires_grad=True)
     density_base = torch.tensor([0.0, 6e4, 4.9, 5.1, 0.0, 1e3], dtype=dtype).reshape(1, 6, 1).expand(4, 6, 1)
     weight = torch.rand(4, 6, 1, dtype=dtype)
-    loss = preservation_loss(density_edit, rgb_edit, density_base, torch.rand(4, 6, 3, dtype=dtype), weight)
+    loss = preservation_loss(density_edit, rgb_edit, density_base, torch.rand(4, 6, 3, dtype=dtype), weight,
+                             target=target)
     loss.backward()
     assert torch.isfinite(loss)
     assert torch.isfinite(density_edit.grad).all() and torch.isfinite(rgb_edit.grad).all()
