@@ -10,6 +10,7 @@ submodules: their weights never enter a checkpoint.
 
 from __future__ import annotations
 
+import sys
 import warnings
 from importlib.metadata import entry_points
 from typing import Dict, Type, Union
@@ -28,6 +29,8 @@ def guidance_components() -> Dict[str, Type[GuidanceConfig]]:
     """Every guidance by its subcommand name: the built-in ones, then the registered ones."""
     components = dict(BUILT_IN)
     for entry in entry_points(group=ENTRY_POINT_GROUP):
+        if _being_imported(entry.module):
+            continue  # the plugin's own module imports this package first: it is not broken, just not done yet
         try:
             component = entry.load()
         except Exception as error:  # a broken plugin must not stop the others
@@ -38,6 +41,12 @@ def guidance_components() -> Dict[str, Type[GuidanceConfig]]:
             continue
         components.setdefault(entry.name, component)
     return components
+
+
+def _being_imported(module_name: str) -> bool:
+    module = sys.modules.get(module_name)
+    spec = getattr(module, "__spec__", None)
+    return module is not None and bool(getattr(spec, "_initializing", False))
 
 
 def guidance_config(name: str, **settings) -> GuidanceConfig:
