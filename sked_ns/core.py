@@ -62,6 +62,10 @@ class SkedOptions:
     thresholded at occupancy_threshold (sharpens a soft base: -1.2 vs -0.2 dB kept; docs/method.md, L_pres)."""
     lambda_sil: float = 1.0
     """Weight of L_sil."""
+    silhouette_opacity: Literal["editable", "any"] = "editable"
+    """What L_sil asks to be opaque along a sketch ray: content near the sketches (opacity weighted by 1 - w), so a
+    wall or table behind the sketch does not fill it before anything is made; "any" is the paper's (all opacity,
+    right for a base with an empty background)."""
     lambda_sp: float = 5e-4
     """Weight of the sparsity (accumulation entropy) loss."""
     lambda_carve: float = 5.0
@@ -244,7 +248,8 @@ class SkedMixin:
 
     # ---- model-specific hooks ------------------------------------------------------------
     def _render(self, ray_bundle: RayBundle) -> Tuple[Dict[str, Tensor], RaySamples, Dict]:
-        """Render with the editable field: (outputs, samples, field outputs at the samples)."""
+        """Render with the editable field: (outputs, samples, field outputs at the samples). The outputs hold the
+        samples' weights as "_weights" (and "_ray_indices" for packed samples) for L_sil's editable opacity."""
         raise NotImplementedError
 
     def render_base(self, ray_bundle: RayBundle) -> Dict[str, Tensor]:
@@ -297,6 +302,15 @@ class SkedMixin:
                 tolerance = 1.0 / min(view.width for view in self.sketch_set.views)
             inside[inside.clone()] = self.sketch_field.hull_distance(flat[inside]) <= tolerance
         return inside.reshape(positions.shape[:-1])
+
+    def editable_accumulation(self, positions: Tensor, weights: Tensor, accumulation: Tensor,
+                              ray_indices: Optional[Tensor] = None) -> Tensor:
+        """Per ray: sum_i weight_i (1 - w(p_i)), the opacity of content the edit may change (differentiable in the
+        weights; w is fixed). 1 - expected_preservation without the background term; shaped as `accumulation`."""
+        editable = weights * (1.0 - self.preservation_weight(positions))
+        if ray_indices is None:
+            return editable.sum(dim=-2)
+        return torch.zeros_like(accumulation).index_add(0, ray_indices, editable)
 
     def expected_preservation(self, positions: Tensor, weights: Tensor, accumulation: Tensor,
                               ray_indices: Optional[Tensor] = None) -> Tensor:
@@ -370,7 +384,7 @@ class SkedMixin:
         height, width = random_view.shape[:2]
         with self._average_appearance():
             view, samples, field_outputs = self._render(self._collide(random_view.flatten()))
-            sketch = self._render(self._collide(sketch_rays))[0] if sketch_rays is not None else None
+            sketch, sketch_samples, _ = self._render(self._collide(sketch_rays)) if sketch_rays is not None else (None,) * 3
 
         # L_pres on the random view's samples.
         weight = self.preservation_weight(samples.frustums.get_positions())
@@ -399,7 +413,11 @@ class SkedMixin:
                                     base_image=base_image)
             losses.update(self.guidance(rendered, step))
             if sketch is not None:
-                accumulation = sketch["accumulation"].reshape(sketch_masks.shape)
+                accumulation = sketch["accumulation"]
+                if config.silhouette_opacity == "editable":
+                    accumulation = self.editable_accumulation(sketch_samples.frustums.get_positions(), sketch["_weights"],
+                                                              accumulation, sketch.get("_ray_indices"))
+                accumulation = accumulation.reshape(sketch_masks.shape)
                 losses["silhouette_loss"] = config.effective_lambda_sil * silhouette_loss(accumulation, sketch_masks)
                 metrics["sketch_coverage"] = (accumulation.detach() > 0.5).float().mul(sketch_masks).sum() / sketch_masks.sum().clamp_min(1)
         rendered = [view] + ([sketch] if sketch is not None else [])

@@ -143,7 +143,8 @@ class SkedNerfactoModel(SkedMixin, NerfactoModel):
         return outputs, ray_samples, field_outputs, weights
 
     def _render(self, ray_bundle: RayBundle):
-        outputs, samples, field_outputs, _ = self._render_with(ray_bundle, self.field, self.density_fns)
+        outputs, samples, field_outputs, weights = self._render_with(ray_bundle, self.field, self.density_fns)
+        outputs["_weights"] = weights  # L_sil's editable opacity needs them
         return outputs, samples, field_outputs
 
     def _sampling_losses(self, rendered: Sequence[Dict[str, Tensor]]) -> Dict[str, Tensor]:
