@@ -111,22 +111,31 @@ def summarise(metrics: Dict) -> Dict:
         "psnr_target_changed": novel.get("psnr_target_changed"),
         "psnr_target_changed_base": novel.get("psnr_target_changed_base"),
         "ios_min": min(view["ios"] for view in metrics["views"]),
+        "ios_region_min": min((view["ios_region"] for view in metrics["views"] if "ios_region" in view), default=None),
     }
     if row["psnr_keep_gt"] is not None and row["psnr_keep_gt_base"] is not None:
         row["psnr_keep_drop"] = row["psnr_keep_gt_base"] - row["psnr_keep_gt"]
     return row
 
 
+def _region_ios(s: Dict) -> str:
+    # Plain IoS counts a wall behind the sketch as filled; region IoS counts only content near the sketches.
+    if s.get("ios_region") is None:
+        return "not measured"
+    low = f" (min {s['ios_region_min']:.2f})" if s.get("ios_region_min") is not None else ""
+    return f"{s['ios_region_base']:.2f} -> {s['ios_region']:.2f}{low}"
+
+
 def table(results: Dict) -> str:
-    lines = ["| scene | set | protocol | variant | novel PSNR kept, base -> edit (drop) | leak | IoS (min) | "
-             "target PSNR changed, base -> edit | s |", "|---|---|---|---|---|---|---|---|---|"]
+    lines = ["| scene | set | protocol | variant | novel PSNR kept, base -> edit (drop) | leak | region IoS, base -> edit | "
+             "IoS (min) | target PSNR changed, base -> edit | s |", "|---|---|---|---|---|---|---|---|---|---|"]
     for row in results["runs"]:
         s = row["summary"]
         lines.append(
             f"| {row['scene']} | {row['set']} | {row['protocol']} | {row['variant']} | "
             f"{s['psnr_keep_gt_base']:.1f} -> {s['psnr_keep_gt']:.1f} ({s['psnr_keep_drop']:+.2f}) | {s['leak']:.4f} | "
-            f"{s['ios']:.2f} ({s['ios_min']:.2f}) | {s['psnr_target_changed_base']:.1f} -> {s['psnr_target_changed']:.1f} | "
-            f"{row['seconds']:.0f} |")
+            f"{_region_ios(s)} | {s['ios']:.2f} ({s['ios_min']:.2f}) | "
+            f"{s['psnr_target_changed_base']:.1f} -> {s['psnr_target_changed']:.1f} | {row['seconds']:.0f} |")
     return "\n".join(lines)
 
 

@@ -129,3 +129,30 @@ def test_silhouette_and_sparsity_finite_at_extremes(dtype, alpha, mask_fill):
 def test_no_samples_gives_zero():
     empty = torch.zeros(0, 1)
     assert preservation_loss(empty, torch.zeros(0, 3), empty, torch.zeros(0, 3), empty).item() == 0.0
+
+
+class _FarIsKept:
+    """Stands in for a SKED model: w = 1 beyond x = 1 (a wall far behind the sketch), 0 before (the edit)."""
+
+    def preservation_weight(self, positions):
+        return (positions[..., :1] > 1.0).float()
+
+
+def test_a_wall_behind_the_sketch_does_not_fill_it():
+    # Two rays, two samples each: near (x = 0.5, editable) and far (x = 2, kept). Ray 0 sees only the opaque wall.
+    from sked_ns.core import SkedMixin
+
+    positions = torch.tensor([[[0.5, 0, 0], [2.0, 0, 0]]]).expand(2, 2, 3)
+    weights = torch.tensor([[[0.0], [1.0]], [[0.6], [0.4]]], requires_grad=True)
+    accumulation = weights.sum(dim=-2)
+    editable = SkedMixin.editable_accumulation(_FarIsKept(), positions, weights, accumulation)
+    torch.testing.assert_close(editable.detach(), torch.tensor([[0.0], [0.6]]))
+    masks = torch.ones(1, 1, 2)
+    assert silhouette_loss(accumulation.reshape(1, 1, 2), masks) < 0.3  # the paper's L_sil: nearly satisfied
+    assert silhouette_loss(editable.reshape(1, 1, 2), masks) > 4.0  # ours: the empty sketch still asks for mass
+    silhouette_loss(editable.reshape(1, 1, 2), masks).backward()
+    assert weights.grad[0, 0, 0] < 0 and weights.grad[0, 1, 0] == 0  # pulls the near sample, ignores the wall
+    # Packed samples (occupancy grids) give the same.
+    packed = SkedMixin.editable_accumulation(_FarIsKept(), positions.reshape(4, 3), weights.detach().reshape(4, 1),
+                                             accumulation.detach(), ray_indices=torch.tensor([0, 0, 1, 1]))
+    torch.testing.assert_close(packed, editable.detach())
