@@ -140,10 +140,11 @@ def table(results: Dict) -> str:
 
 
 VARIANTS = {"default": [],
-            "paper (occupancy target, no photo anchor)": ["--pipeline.model.preservation-target", "occupancy",
-                                                          "--pipeline.model.lambda-photo", "0"],
-            "occupancy-target (the paper's L_pres, photo anchor on)": ["--pipeline.model.preservation-target",
-                                                                       "occupancy"]}
+            "paper (occupancy target, whole-ray L_sil, no photo anchor)": [
+                "--pipeline.model.preservation-target", "occupancy", "--pipeline.model.silhouette-opacity", "any",
+                "--pipeline.model.lambda-photo", "0"],
+            "previous-default (occupancy target, whole-ray L_sil, photo anchor on)": [
+                "--pipeline.model.preservation-target", "occupancy", "--pipeline.model.silhouette-opacity", "any"]}
 
 
 def main() -> None:
