@@ -139,12 +139,17 @@ def table(results: Dict) -> str:
     return "\n".join(lines)
 
 
+_BEFORE_RESIDUAL = ["--pipeline.model.colour-residual", "False"]
 VARIANTS = {"default": [],
+            "no-colour-residual": _BEFORE_RESIDUAL,
             "paper (occupancy target, whole-ray L_sil, no photo anchor)": [
                 "--pipeline.model.preservation-target", "occupancy", "--pipeline.model.silhouette-opacity", "any",
-                "--pipeline.model.lambda-photo", "0"],
+                "--pipeline.model.lambda-photo", "0", *_BEFORE_RESIDUAL],
             "previous-default (occupancy target, whole-ray L_sil, photo anchor on)": [
-                "--pipeline.model.preservation-target", "occupancy", "--pipeline.model.silhouette-opacity", "any"]}
+                "--pipeline.model.preservation-target", "occupancy", "--pipeline.model.silhouette-opacity", "any",
+                *_BEFORE_RESIDUAL],
+            "density-target-only (whole-ray L_sil, photo anchor on)": ["--pipeline.model.silhouette-opacity", "any",
+                                                                       *_BEFORE_RESIDUAL]}
 
 
 def main() -> None:

@@ -29,6 +29,7 @@ from nerfstudio.field_components.field_heads import FieldHeadNames
 from torch import Tensor
 
 from sked_ns.base_scene import read_model_state, uses_tcnn
+from sked_ns.colour_residual import ColourResidual
 from sked_ns.edit_box import EditBox, compute_edit_box
 from sked_ns.frozen_base import FrozenBase
 from sked_ns.guidance import Guidance, GuidanceChoice, RenderedView, StableDiffusionGuidanceConfig
@@ -62,6 +63,9 @@ class SkedOptions:
     thresholded at occupancy_threshold (sharpens a soft base: -1.2 vs -0.2 dB kept; docs/method.md, L_pres)."""
     lambda_sil: float = 1.0
     """Weight of L_sil."""
+    colour_residual: bool = True
+    """Give new content its own colour capacity near the sketches (colour_residual.py): a colour the base never shows
+    is reached without moving the colour MLP everything kept shares. False: the paper's model."""
     silhouette_opacity: Literal["editable", "any"] = "editable"
     """What L_sil asks to be opaque along a sketch ray: content near the sketches (opacity weighted by 1 - w), so a
     wall or table behind the sketch does not fill it before anything is made; "any" is the paper's (all opacity,
@@ -147,6 +151,8 @@ class SkedMixin:
         if getattr(self.field, "embedding_appearance", None) is not None:
             self.field.embedding_appearance.requires_grad_(False)
         warn_degenerate_settings(self.config, sketch_set)
+        self.colour_residual = (ColourResidual(self.edit_box.min, self.edit_box.max)
+                                if self.config.colour_residual else None)
         self.guidance: Optional[Guidance] = None  # plain attribute: never in a checkpoint
         self._add_viewer_controls()
 
@@ -244,6 +250,9 @@ class SkedMixin:
         trainable = lambda module: [p for p in module.parameters() if p.requires_grad]  # noqa: E731
         groups = {name: [p for p in trainable(module) if id(p) not in grids] for name, module in non_grid.items()}
         groups["hash_grids"] = [p for p in trainable(self) if id(p) in grids]
+        if getattr(self, "colour_residual", None) is not None:
+            # Its linear layer starts at zero, so the grid gets no gradient until it moves: train it at the grids' rate.
+            groups["hash_grids"] += list(self.colour_residual.linear.parameters())
         return groups
 
     # ---- model-specific hooks ------------------------------------------------------------
@@ -302,6 +311,15 @@ class SkedMixin:
                 tolerance = 1.0 / min(view.width for view in self.sketch_set.views)
             inside[inside.clone()] = self.sketch_field.hull_distance(flat[inside]) <= tolerance
         return inside.reshape(positions.shape[:-1])
+
+    def _edit_colour(self, field_outputs: Dict, ray_samples: RaySamples) -> Dict:
+        """The editable field's colours with the colour residual (colour_residual.py); the base's are never moved."""
+        if self.colour_residual is None:
+            return field_outputs
+        positions = ray_samples.frustums.get_positions()
+        rgb = field_outputs[FieldHeadNames.RGB]
+        return {**field_outputs, FieldHeadNames.RGB: self.colour_residual.apply(rgb, positions,
+                                                                             self.preservation_weight(positions))}
 
     def editable_accumulation(self, positions: Tensor, weights: Tensor, accumulation: Tensor,
                               ray_indices: Optional[Tensor] = None) -> Tensor:

@@ -118,6 +118,8 @@ class SkedNerfactoModel(SkedMixin, NerfactoModel):
         """
         ray_samples, weights_list, ray_samples_list = self.proposal_sampler(ray_bundle, density_fns=density_fns)
         field_outputs = field.forward(ray_samples, compute_normals=self.config.predict_normals)
+        if field is self.field:
+            field_outputs = self._edit_colour(field_outputs, ray_samples)
         if self.config.use_gradient_scaling:
             field_outputs = scale_gradients_by_distance_squared(field_outputs, ray_samples)
         weights = ray_samples.get_weights(field_outputs[FieldHeadNames.DENSITY])

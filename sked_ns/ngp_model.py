@@ -124,6 +124,8 @@ class SkedNGPModel(SkedMixin, NGPModel):
                 cone_angle=self.config.cone_angle,
             )
         field_outputs = field_module(ray_samples)
+        if field_module is self.field:
+            field_outputs = self._edit_colour(field_outputs, ray_samples)
         weights = render_weights(
             ray_samples.frustums.starts[..., 0], ray_samples.frustums.ends[..., 0],
             field_outputs[FieldHeadNames.DENSITY][..., 0], ray_indices, num_rays,
