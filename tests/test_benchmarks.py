@@ -84,11 +84,14 @@ def test_benchmark_command_lines_parse_as_ns_train_parses_them(tmp_path):
 
     paths = {"sketches": tmp_path / "sketches", "data": tmp_path / "data"}
     protocol = {**edit_quality.PROTOCOLS["cpu-100"]}
+    paper = next(flags for name, flags in edit_quality.VARIANTS.items() if name.startswith("paper"))
     config = tyro.cli(AnnotatedBaseConfigUnion, args=edit_quality.edit_arguments(
-        tmp_path / "base", paths, "vase", protocol, tmp_path / "out", extra=["--pipeline.model.lambda-photo", "0"]))
+        tmp_path / "base", paths, "vase", protocol, tmp_path / "out", extra=paper))
     model = config.pipeline.model
     assert type(model.guidance).__name__ == "ReferenceGuidanceConfig" and model.guidance.target == "vase"
     assert model.lambda_photo == 0 and model.guidance_resolution == protocol["resolution"]
+    # The paper variant is the paper's model: its L_pres target, its L_sil, no colour residual.
+    assert (model.preservation_target, model.silhouette_opacity, model.colour_residual) == ("occupancy", "any", False)
     assert config.pipeline.datamanager.dataparser.data == paths["data"]
 
     arguments = gpu_check.edit_arguments(tmp_path / "base", tmp_path, tmp_path / "sd", "nerfacto", 7, "tiny", "cpu")
