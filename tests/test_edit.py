@@ -75,7 +75,9 @@ def test_base_files_untouched_and_base_field_frozen(scene, edited):
     # The frozen base is not in the checkpoint, nor is any guidance weight.
     checkpoint = torch.load(sorted((edited["run"] / "nerfstudio_models").glob("*.ckpt"))[-1], map_location="cpu")
     top_level = {key.split(".")[1] for key in checkpoint["pipeline"] if key.startswith("_model.")}
-    assert top_level <= {"field", "proposal_networks", "camera_optimizer", "device_indicator_param", "_extra_state"}, top_level
+    assert top_level <= {"field", "proposal_networks", "camera_optimizer", "device_indicator_param", "_extra_state",
+                         "colour_residual"}, top_level
+    assert "colour_residual" in top_level  # the edit's own colour capacity is saved with it
     assert checkpoint["pipeline"]["_model._extra_state"] == {"sked_step": ITERATIONS - 1}
 
 
