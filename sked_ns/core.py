@@ -39,6 +39,14 @@ from sked_ns.preservation import SketchDistanceField, check_beta
 from sked_ns.sketches import SketchSet
 
 
+def per_ray_sum(values: Tensor, accumulation: Tensor, ray_indices: Optional[Tensor] = None) -> Tensor:
+    """Sum per-sample values (..., samples, 1) over each ray, shaped as `accumulation`; `ray_indices` for packed
+    samples (occupancy grids)."""
+    if ray_indices is None:
+        return values.sum(dim=-2)
+    return torch.zeros_like(accumulation).index_add(0, ray_indices, values)
+
+
 @dataclass
 class SkedOptions:
     """SKED's settings, shared by the nerfacto and instant-ngp edit models."""
@@ -325,10 +333,7 @@ class SkedMixin:
                               ray_indices: Optional[Tensor] = None) -> Tensor:
         """Per ray: sum_i weight_i (1 - w(p_i)), the opacity of content the edit may change (differentiable in the
         weights; w is fixed). 1 - expected_preservation without the background term; shaped as `accumulation`."""
-        editable = weights * (1.0 - self.preservation_weight(positions))
-        if ray_indices is None:
-            return editable.sum(dim=-2)
-        return torch.zeros_like(accumulation).index_add(0, ray_indices, editable)
+        return per_ray_sum(weights * (1.0 - self.preservation_weight(positions)), accumulation, ray_indices)
 
     def expected_preservation(self, positions: Tensor, weights: Tensor, accumulation: Tensor,
                               ray_indices: Optional[Tensor] = None) -> Tensor:
@@ -337,11 +342,7 @@ class SkedMixin:
         0 where a pixel shows content the edit may change, 1 where it shows only what must be kept.
         `ray_indices` for packed samples (occupancy grids), else samples are (rays, samples, 3).
         """
-        preserved = (weights * self.preservation_weight(positions)).detach()
-        if ray_indices is None:
-            preserved = preserved.sum(dim=-2)
-        else:
-            preserved = torch.zeros_like(accumulation).index_add_(0, ray_indices, preserved)
+        preserved = per_ray_sum((weights * self.preservation_weight(positions)).detach(), accumulation, ray_indices)
         return (preserved + (1 - accumulation.detach()).clamp(0, 1)).clamp(0, 1)
 
     @contextlib.contextmanager
