@@ -71,18 +71,25 @@ def train_base(data: Path, output: Path, iterations: int, log: Path) -> Path:
 
 def edit_arguments(base: Path, paths: Dict[str, Path], scene: str, protocol: Dict, output: Path,
                    extra: Optional[List[str]] = None) -> List[str]:
-    """The `ns-train` arguments of one edit, as a user types them."""
+    """The `ns-train` arguments of one edit, as a user types them (a variant's guidance flags go after its
+    subcommand, where tyro reads them)."""
     iterations, resolution = protocol["iterations"], protocol["resolution"]
+    guidance_flags = [flag for flag in _flag_pairs(extra or []) if flag[0].startswith("--pipeline.model.guidance.")]
+    model_flags = [flag for flag in _flag_pairs(extra or []) if flag not in guidance_flags]
     return ["sked", "--load-dir", str(base), "--sketches", str(paths["sketches"]), "--output-dir", str(output),
             "--experiment-name", scene, "--max-num-iterations", str(iterations), "--vis", "tensorboard",
             "--machine.device-type", "cpu", "--steps-per-save", str(iterations),
             "--pipeline.model.guidance-resolution", str(resolution),
             "--pipeline.model.silhouette-resolution", str(resolution),
             "--pipeline.model.samples-per-ray-scale", str(protocol.get("samples_per_ray_scale", 1.0)),
-            "--pipeline.model.edit-box-warmup", str(max(1, iterations // 10)), *(extra or []),
+            "--pipeline.model.edit-box-warmup", str(max(1, iterations // 10)), *sum(model_flags, []),
             # Subcommands last, each followed by its own flags: the guidance, then the dataparser.
-            "pipeline.model.guidance:reference", "--pipeline.model.guidance.target", scene,
+            "pipeline.model.guidance:reference", "--pipeline.model.guidance.target", scene, *sum(guidance_flags, []),
             "nerfstudio-data", "--data", str(paths["data"])]
+
+
+def _flag_pairs(arguments: List[str]) -> List[List[str]]:
+    return [arguments[i:i + 2] for i in range(0, len(arguments), 2)]
 
 
 def edit(base: Path, paths: Dict[str, Path], scene: str, protocol: Dict, output: Path, log: Path,
@@ -149,7 +156,9 @@ VARIANTS = {"default": [],
                 "--pipeline.model.preservation-target", "occupancy", "--pipeline.model.silhouette-opacity", "any",
                 *_BEFORE_RESIDUAL],
             "density-target-only (whole-ray L_sil, photo anchor on)": ["--pipeline.model.silhouette-opacity", "any",
-                                                                       *_BEFORE_RESIDUAL]}
+                                                                       *_BEFORE_RESIDUAL],
+            # Guidance is the only loss on the random views' colours: what leaks without it is L_sil's.
+            "no-guidance (L_sil, L_pres, photo anchor only)": ["--pipeline.model.guidance.weight", "0"]}
 
 
 def main() -> None:

@@ -46,7 +46,10 @@ def edit_config(
 
 
 def run_edit(config: SkedTrainerConfig):
-    """What `ns-train` does with a config: save it, set up the trainer, train. Returns the trainer."""
+    """What `ns-train` does with a config: seed, save it, set up the trainer, train. Returns the trainer."""
+    from nerfstudio.scripts.train import _set_random_seed
+
+    _set_random_seed(config.machine.seed)  # as ns-train's train_loop: the edit must not depend on what ran before
     config.set_timestamp()
     config.save_config()
     trainer = config.setup(local_rank=0, world_size=1)

@@ -14,6 +14,13 @@ from sked_ns.sketches import SketchView
 os.environ.setdefault("HF_HUB_OFFLINE", "1")
 os.environ.setdefault("TRANSFORMERS_OFFLINE", "1")
 
+if os.environ.get("PYTEST_XDIST_WORKER"):
+    # Parallel workers share the cores: one thread each (and for the ns-* commands they start), or they thrash.
+    os.environ["OMP_NUM_THREADS"] = os.environ["MKL_NUM_THREADS"] = "1"
+    import torch
+
+    torch.set_num_threads(1)
+
 
 def random_pose(rng: np.random.Generator, radius_range=(1.5, 3.0)) -> np.ndarray:
     """A camera on a random sphere point looking at a random point near the origin."""

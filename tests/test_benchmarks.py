@@ -93,6 +93,11 @@ def test_benchmark_command_lines_parse_as_ns_train_parses_them(tmp_path):
     # The paper variant is the paper's model: its L_pres target, its L_sil, no colour residual.
     assert (model.preservation_target, model.silhouette_opacity, model.colour_residual) == ("occupancy", "any", False)
     assert config.pipeline.datamanager.dataparser.data == paths["data"]
+    # A variant's guidance flags reach the guidance (they must follow its subcommand).
+    quiet = next(flags for name, flags in edit_quality.VARIANTS.items() if name.startswith("no-guidance"))
+    config = tyro.cli(AnnotatedBaseConfigUnion, args=edit_quality.edit_arguments(
+        tmp_path / "base", paths, "crate", protocol, tmp_path / "out", extra=quiet))
+    assert config.pipeline.model.guidance.weight == 0 and config.pipeline.model.guidance.target == "crate"
 
     arguments = gpu_check.edit_arguments(tmp_path / "base", tmp_path, tmp_path / "sd", "nerfacto", 7, "tiny", "cpu")
     config = tyro.cli(AnnotatedBaseConfigUnion, args=["sked", *arguments])

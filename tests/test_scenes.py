@@ -47,10 +47,12 @@ def test_reference_edit_reaches_each_target(scene, tmp_path, name):
         before, after = render_at(base.model, view, 64), render_at(trainer.pipeline.model, view, 64)
         ios_before = intersection_over_sketch(before["accumulation"], mask)
         ios_after = intersection_over_sketch(after["accumulation"], mask)
-        assert ios_after > ios_before + 0.2
-        # Measured 23.2 / 29.5 / 33.2 dB on handle's views with the authors' random-view angles (views from
-        # above and below move more of the base than the old -10..60 deg did; > 25 dB before).
-        assert psnr_outside(after["rgb"], before["rgb"], mask) > 22.0
+        # Seeded as ns-train seeds, measured: handle 0.69 -> 0.91, 0.36 -> 0.85, 0.61 -> 0.93; antenna 0.10 -> 0.85,
+        # 0.23 -> 0.81. (Handle's first view is mostly the sphere already, so "+0.2" had no margin there.)
+        assert ios_after > 0.75 and ios_after > ios_before + 0.15
+        # Measured 40.0 / 36.0 / 34.7 dB on handle's views, 36.0 / 36.0 on antenna's (23-33 dB before the
+        # base-density preservation target and the photo anchor).
+        assert psnr_outside(after["rgb"], before["rgb"], mask) > 30.0
 
 
 @pytest.mark.parametrize("name", ["vase", "crate"])
