@@ -74,17 +74,18 @@ def edit_arguments(base: Path, paths: Dict[str, Path], scene: str, protocol: Dic
     """The `ns-train` arguments of one edit, as a user types them (a variant's guidance flags go after its
     subcommand, where tyro reads them)."""
     iterations, resolution = protocol["iterations"], protocol["resolution"]
-    guidance_flags = [flag for flag in _flag_pairs(extra or []) if flag[0].startswith("--pipeline.model.guidance.")]
-    model_flags = [flag for flag in _flag_pairs(extra or []) if flag not in guidance_flags]
+    pairs = _flag_pairs(extra or [])  # every variant flag takes one value
+    guidance_flags = [word for pair in pairs if pair[0].startswith("--pipeline.model.guidance.") for word in pair]
+    model_flags = [word for pair in pairs if not pair[0].startswith("--pipeline.model.guidance.") for word in pair]
     return ["sked", "--load-dir", str(base), "--sketches", str(paths["sketches"]), "--output-dir", str(output),
             "--experiment-name", scene, "--max-num-iterations", str(iterations), "--vis", "tensorboard",
             "--machine.device-type", "cpu", "--steps-per-save", str(iterations),
             "--pipeline.model.guidance-resolution", str(resolution),
             "--pipeline.model.silhouette-resolution", str(resolution),
             "--pipeline.model.samples-per-ray-scale", str(protocol.get("samples_per_ray_scale", 1.0)),
-            "--pipeline.model.edit-box-warmup", str(max(1, iterations // 10)), *sum(model_flags, []),
+            "--pipeline.model.edit-box-warmup", str(max(1, iterations // 10)), *model_flags,
             # Subcommands last, each followed by its own flags: the guidance, then the dataparser.
-            "pipeline.model.guidance:reference", "--pipeline.model.guidance.target", scene, *sum(guidance_flags, []),
+            "pipeline.model.guidance:reference", "--pipeline.model.guidance.target", scene, *guidance_flags,
             "nerfstudio-data", "--data", str(paths["data"])]
 
 
@@ -115,6 +116,10 @@ def summarise(metrics: Dict) -> Dict:
         "leak": novel.get("leak"),
         "psnr_keep_gt": novel.get("psnr_target_unchanged"),
         "psnr_keep_gt_base": novel.get("psnr_target_unchanged_base"),
+        # The same over the pixels that show preserved content in base and edit (sked-eval's psnr_keep_gt):
+        # what preservation is answerable for; the column above also charges the edit's shape in the hull.
+        "psnr_kept_pixels_gt": novel.get("psnr_keep_gt"),
+        "psnr_kept_pixels_gt_base": novel.get("psnr_keep_gt_base"),
         "psnr_target_changed": novel.get("psnr_target_changed"),
         "psnr_target_changed_base": novel.get("psnr_target_changed_base"),
         "ios_min": min(view["ios"] for view in metrics["views"]),
@@ -133,14 +138,22 @@ def _region_ios(s: Dict) -> str:
     return f"{s['ios_region_base']:.2f} -> {s['ios_region']:.2f}{low}"
 
 
+def _kept_pixels(s: Dict) -> str:
+    if s.get("psnr_kept_pixels_gt") is None:
+        return "not recorded"
+    return f"{s['psnr_kept_pixels_gt_base']:.1f} -> {s['psnr_kept_pixels_gt']:.1f}"
+
+
 def table(results: Dict) -> str:
-    lines = ["| scene | set | protocol | variant | novel PSNR kept, base -> edit (drop) | leak | region IoS, base -> edit | "
-             "IoS (min) | target PSNR changed, base -> edit | s |", "|---|---|---|---|---|---|---|---|---|---|"]
+    lines = ["| scene | set | protocol | variant | novel PSNR kept, base -> edit (drop) | kept pixels only | leak | "
+             "region IoS, base -> edit | IoS (min) | target PSNR changed, base -> edit | s |",
+             "|---|---|---|---|---|---|---|---|---|---|---|"]
     for row in results["runs"]:
         s = row["summary"]
         lines.append(
             f"| {row['scene']} | {row['set']} | {row['protocol']} | {row['variant']} | "
-            f"{s['psnr_keep_gt_base']:.1f} -> {s['psnr_keep_gt']:.1f} ({s['psnr_keep_drop']:+.2f}) | {s['leak']:.4f} | "
+            f"{s['psnr_keep_gt_base']:.1f} -> {s['psnr_keep_gt']:.1f} ({s['psnr_keep_drop']:+.2f}) | {_kept_pixels(s)} | "
+            f"{s['leak']:.4f} | "
             f"{_region_ios(s)} | {s['ios']:.2f} ({s['ios_min']:.2f}) | "
             f"{s['psnr_target_changed_base']:.1f} -> {s['psnr_target_changed']:.1f} | {row['seconds']:.0f} |")
     return "\n".join(lines)
@@ -161,12 +174,22 @@ VARIANTS = {"default": [],
             "no-guidance (L_sil, L_pres, photo anchor only)": ["--pipeline.model.guidance.weight", "0"]}
 
 
+def _variant(tag: str) -> str:
+    # Variant names hold commas, so the command line names them by their first word.
+    names = [name for name in VARIANTS if name.split()[0] == tag.strip()]
+    if not names:
+        raise SystemExit(f"--variants: no variant {tag!r}; choose from {', '.join(n.split()[0] for n in VARIANTS)}")
+    return names[0]
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--quick", action="store_true", help="hat only, 4 edit iterations, a 30-iteration base")
     parser.add_argument("--scenes", default=",".join(TUNED + HELD_OUT))
     parser.add_argument("--protocols", default=",".join(PROTOCOLS))
-    parser.add_argument("--variants", default=",".join(VARIANTS))
+    parser.add_argument("--variants", default=",".join(name.split()[0] for name in VARIANTS),
+                        help="comma-separated, each a variant's first word (its tag): " + ", ".join(
+                            name.split()[0] for name in VARIANTS))
     parser.add_argument("--work", type=Path, default=Path("benchmark_work"), help="datasets, bases, edits, logs")
     parser.add_argument("--output", type=Path, default=RESULTS / "edit_quality.json")
     parser.add_argument("--replot", action="store_true")
@@ -179,7 +202,7 @@ def main() -> None:
     scenes = ["hat"] if args.quick else args.scenes.split(",")
     protocols = {"quick": {"iterations": 4, "resolution": 16, "samples_per_ray_scale": 0.25}} if args.quick else {
         name: PROTOCOLS[name] for name in args.protocols.split(",")}
-    variants = ["default"] if args.quick else args.variants.split(",")
+    variants = ["default"] if args.quick else [_variant(tag) for tag in args.variants.split(",")]
     base_iterations = 30 if args.quick else BASE_ITERATIONS
     results = {"protocol": __doc__.split("Protocols")[1].split("Writes")[0].strip(), "base_iterations": base_iterations,
                "base_rays_per_batch": BASE_RAYS, "runs": []}

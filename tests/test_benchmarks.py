@@ -7,6 +7,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
 sys.path.insert(0, str(BENCHMARKS))
 
@@ -94,7 +96,9 @@ def test_benchmark_command_lines_parse_as_ns_train_parses_them(tmp_path):
     assert (model.preservation_target, model.silhouette_opacity, model.colour_residual) == ("occupancy", "any", False)
     assert config.pipeline.datamanager.dataparser.data == paths["data"]
     # A variant's guidance flags reach the guidance (they must follow its subcommand).
-    quiet = next(flags for name, flags in edit_quality.VARIANTS.items() if name.startswith("no-guidance"))
+    quiet = edit_quality.VARIANTS[edit_quality._variant("no-guidance")]  # named by its tag: the names hold commas
+    with pytest.raises(SystemExit, match="no-guidance"):
+        edit_quality._variant("no-such-variant")  # the error lists the tags
     config = tyro.cli(AnnotatedBaseConfigUnion, args=edit_quality.edit_arguments(
         tmp_path / "base", paths, "crate", protocol, tmp_path / "out", extra=quiet))
     assert config.pipeline.model.guidance.weight == 0 and config.pipeline.model.guidance.target == "crate"
