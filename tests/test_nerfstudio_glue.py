@@ -163,3 +163,30 @@ def test_other_models_are_refused():
     assert base_family(method_configs["splatfacto"].pipeline.model) is None
     assert base_family(method_configs["instant-ngp"].pipeline.model) == "instant-ngp"
     assert base_family(SkedNGPModelConfig()) == "sked"
+
+
+def test_run_edit_seeds_as_ns_train_does():
+    """ns-train seeds torch, numpy and random from machine.seed before building the trainer; the demo, the
+    tests and the benchmarks' Python edits go through run_edit, so it must too, or an edit depends on
+    whatever drew random numbers before it (a test that passed alone failed in the full suite)."""
+    import random
+
+    import numpy as np
+
+    from sked_ns.edit_run import run_edit
+
+    class Trainer:
+        def setup(self):
+            self.draws = (torch.rand(3), np.random.rand(3), random.random())
+
+        def train(self):
+            pass
+
+    config = types.SimpleNamespace(machine=types.SimpleNamespace(seed=42), set_timestamp=lambda: None,
+                                   save_config=lambda: None, setup=lambda **_: Trainer())
+    first = run_edit(config).draws
+    torch.rand(7), np.random.rand(7), random.random()  # whatever ran in between
+    second = run_edit(config).draws
+    assert torch.equal(first[0], second[0]) and np.array_equal(first[1], second[1]) and first[2] == second[2]
+    config.machine.seed = 43
+    assert not torch.equal(run_edit(config).draws[0], first[0])
