@@ -47,9 +47,15 @@ def edit_config(
 
 def run_edit(config: SkedTrainerConfig):
     """What `ns-train` does with a config: seed, save it, set up the trainer, train. Returns the trainer."""
-    from nerfstudio.scripts.train import _set_random_seed
+    import random
 
-    _set_random_seed(config.machine.seed)  # as ns-train's train_loop: the edit must not depend on what ran before
+    import numpy as np
+    import torch
+
+    # Seeded as ns-train's train_loop seeds (random, numpy, torch): the edit must not depend on what ran before.
+    random.seed(config.machine.seed)
+    np.random.seed(config.machine.seed)
+    torch.manual_seed(config.machine.seed)
     config.set_timestamp()
     config.save_config()
     trainer = config.setup(local_rank=0, world_size=1)
