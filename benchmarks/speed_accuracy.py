@@ -292,8 +292,9 @@ def main() -> None:
     kept = []
     if args.keep_from is not None:
         older = json.loads(args.keep_from.read_text())
-        kept = [{**run, "note": f"not re-measured: from {args.keep_from.name} ({older.get('commit', 'older run')})"}
-                for run in older["runs"] if run["name"] in args.skip]
+        # A row already carried over keeps its own note (the commit it was measured at).
+        kept = [{**run, "note": run.get("note") or f"not re-measured: from {args.keep_from.name} "
+                 f"({older.get('commit', 'older run')})"} for run in older["runs"] if run["name"] in args.skip]
     with tempfile.TemporaryDirectory() as scratch:
         workdir = args.workdir or Path(scratch)
         workdir.mkdir(parents=True, exist_ok=True)
