@@ -254,6 +254,13 @@ def write_partial(output: Path, results: list[dict]) -> None:
     output.with_suffix(".partial.json").write_text(json.dumps({"commit": commit(), "runs": results}, indent=2))
 
 
+def carried_over(older: dict, names: list[str], source: str) -> list[dict]:
+    """The older results' runs called `names`, each marked with where it was measured; a row already carried
+    over once keeps its own mark (the commit it was measured at, not the file it last passed through)."""
+    return [{**run, "note": run.get("note") or f"not re-measured: from {source} ({older.get('commit', 'older run')})"}
+            for run in older["runs"] if run["name"] in names]
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--quick", action="store_true", help="one scene, 4 iterations (a smoke run)")
@@ -291,10 +298,7 @@ def main() -> None:
             and (not args.only or run["name"] in args.only) and (not args.scene or run["scene"] in args.scene)]
     kept = []
     if args.keep_from is not None:
-        older = json.loads(args.keep_from.read_text())
-        # A row already carried over keeps its own note (the commit it was measured at).
-        kept = [{**run, "note": run.get("note") or f"not re-measured: from {args.keep_from.name} "
-                 f"({older.get('commit', 'older run')})"} for run in older["runs"] if run["name"] in args.skip]
+        kept = carried_over(json.loads(args.keep_from.read_text()), args.skip, args.keep_from.name)
     with tempfile.TemporaryDirectory() as scratch:
         workdir = args.workdir or Path(scratch)
         workdir.mkdir(parents=True, exist_ok=True)

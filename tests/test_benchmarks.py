@@ -15,6 +15,15 @@ sys.path.insert(0, str(BENCHMARKS))
 import speed_accuracy  # noqa: E402
 
 
+def test_rows_carried_over_keep_the_commit_they_were_measured_at():
+    older = {"commit": "new1", "runs": [{"name": "sked", "ios": 0.9}, {"name": "sweep", "note": "not re-measured: old0"},
+                                        {"name": "other"}]}
+    kept = speed_accuracy.carried_over(older, ["sked", "sweep"], "before.json")
+    assert [run["name"] for run in kept] == ["sked", "sweep"]
+    assert kept[0]["note"] == "not re-measured: from before.json (new1)" and kept[0]["ios"] == 0.9
+    assert kept[1]["note"] == "not re-measured: old0"
+
+
 def test_pareto_front_keeps_only_undominated_points():
     points = [(10.0, 20.0), (5.0, 18.0), (20.0, 19.0), (5.0, 18.0), (1.0, 10.0), (30.0, 25.0)]
     # (20, 19) is beaten by (10, 20); ties are on the front together.
