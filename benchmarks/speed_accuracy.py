@@ -328,6 +328,7 @@ def main() -> None:
     args.output.write_text(json.dumps({"protocol": protocol, "machine": machine, "device": device, "quick": args.quick,
                                        "commit": commit(), "summary": summary, "runs": results}, indent=2))
     plot(summary, args.output.with_suffix(".png"), label)
+    args.output.with_suffix(".partial.json").unlink(missing_ok=True)  # superseded by the full results
     print(label.replace("\n", "; "))
     print(table(summary))
     print(f"wrote {args.output} and {args.output.with_suffix('.png')}")

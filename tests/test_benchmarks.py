@@ -51,6 +51,7 @@ def test_speed_accuracy_quick_run_writes_json_and_plot(tmp_path):
     for key in ("seconds_total", "ms_per_iteration", "peak_memory_mb", "ios", "psnr_outside", "psnr_target_inside"):
         assert row[key] > 0, key
     assert "CPU protocol" in data["protocol"] and output.with_suffix(".png").stat().st_size > 10_000
+    assert not output.with_suffix(".partial.json").exists(), "a finished run leaves no partial results behind"
     assert "| sked-fast | preset |" in result.stdout
 
 
