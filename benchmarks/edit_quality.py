@@ -74,9 +74,9 @@ def edit_arguments(base: Path, paths: Dict[str, Path], scene: str, protocol: Dic
     """The `ns-train` arguments of one edit, as a user types them (a variant's guidance flags go after its
     subcommand, where tyro reads them)."""
     iterations, resolution = protocol["iterations"], protocol["resolution"]
-    pairs = _flag_pairs(extra or [])  # every variant flag takes one value
-    guidance_flags = [word for pair in pairs if pair[0].startswith("--pipeline.model.guidance.") for word in pair]
-    model_flags = [word for pair in pairs if not pair[0].startswith("--pipeline.model.guidance.") for word in pair]
+    model_flags, guidance_flags = [], []
+    for flag, value in _flag_pairs(extra or []):  # every variant flag takes one value
+        (guidance_flags if flag.startswith("--pipeline.model.guidance.") else model_flags).extend([flag, value])
     return ["sked", "--load-dir", str(base), "--sketches", str(paths["sketches"]), "--output-dir", str(output),
             "--experiment-name", scene, "--max-num-iterations", str(iterations), "--vis", "tensorboard",
             "--machine.device-type", "cpu", "--steps-per-save", str(iterations),
@@ -174,11 +174,15 @@ VARIANTS = {"default": [],
             "no-guidance (L_sil, L_pres, photo anchor only)": ["--pipeline.model.guidance.weight", "0"]}
 
 
+def _tag(variant: str) -> str:
+    # Variant names hold commas, so the command line and the file names use their first word.
+    return variant.split()[0]
+
+
 def _variant(tag: str) -> str:
-    # Variant names hold commas, so the command line names them by their first word.
-    names = [name for name in VARIANTS if name.split()[0] == tag.strip()]
+    names = [name for name in VARIANTS if _tag(name) == tag.strip()]
     if not names:
-        raise SystemExit(f"--variants: no variant {tag!r}; choose from {', '.join(n.split()[0] for n in VARIANTS)}")
+        raise SystemExit(f"--variants: no variant {tag!r}; choose from {', '.join(map(_tag, VARIANTS))}")
     return names[0]
 
 
@@ -187,9 +191,8 @@ def main() -> None:
     parser.add_argument("--quick", action="store_true", help="hat only, 4 edit iterations, a 30-iteration base")
     parser.add_argument("--scenes", default=",".join(TUNED + HELD_OUT))
     parser.add_argument("--protocols", default=",".join(PROTOCOLS))
-    parser.add_argument("--variants", default=",".join(name.split()[0] for name in VARIANTS),
-                        help="comma-separated, each a variant's first word (its tag): " + ", ".join(
-                            name.split()[0] for name in VARIANTS))
+    parser.add_argument("--variants", default=",".join(map(_tag, VARIANTS)),
+                        help="comma-separated variant tags (first words): " + ", ".join(map(_tag, VARIANTS)))
     parser.add_argument("--work", type=Path, default=Path("benchmark_work"), help="datasets, bases, edits, logs")
     parser.add_argument("--output", type=Path, default=RESULTS / "edit_quality.json")
     parser.add_argument("--replot", action="store_true")
@@ -221,7 +224,7 @@ def main() -> None:
             for variant in variants:
                 if (scene, protocol_name, variant) in done:
                     continue
-                tag = f"{protocol_name}-{variant.split()[0]}"
+                tag = f"{protocol_name}-{_tag(variant)}"
                 start = time.perf_counter()
                 edit_run = edit(base, paths, scene, protocol, work / "edits" / tag, work / f"{tag}.log", VARIANTS[variant])
                 metrics = score(edit_run, paths, work / f"{tag}.eval.json", work / f"{tag}.eval.log")
