@@ -118,3 +118,30 @@ def test_benchmark_command_lines_parse_as_ns_train_parses_them(tmp_path):
     guidance = config.pipeline.model.guidance
     assert type(guidance).__name__ == "StableDiffusionGuidanceConfig"
     assert guidance.model == str(tmp_path / "sd") and guidance.image_size == 32 and config.max_num_iterations == 7
+
+
+def test_sketch_view_fill_credits_a_correct_edit_that_kept_content_hides():
+    """A sketch holds the added part's hidden pixels too (the crate's wall in front of half the handle): the exact
+    target fills only some of it by region IoS, all of it where the target shows the part, and nothing fills 0."""
+    import torch
+
+    import edit_quality
+    from sked_ns.demo.benchmark_scenes import SCENES, visible_added_part
+    from sked_ns.cameras import sketch_view_at
+    from sked_ns.preservation import SketchDistanceField
+
+    views = SCENES["crate"].sketch_set().views
+    beta, resolution = 0.025, 64
+    camera, mask = sketch_view_at(views[0], resolution)
+    truth = visible_added_part(SCENES["crate"], views[0].camera_to_world[:3], float(camera.fx), resolution, resolution)
+    # The visible part lies in the sketch; from this view the crate hides most of it.
+    assert (truth["visible"] & ~mask).sum() <= 0.05 * truth["visible"].sum()
+    assert (truth["visible"] & mask).sum() < 0.5 * mask.sum()
+    weight = SketchDistanceField(views).preservation_weight(truth["points"].reshape(-1, 3), beta).reshape(mask.shape)
+    exact = torch.where(truth["hit"], 1.0 - weight, torch.zeros_like(weight))
+    nothing = torch.zeros(mask.shape)
+    scores = edit_quality.view_fill("crate", views, 0, beta, resolution, exact, nothing)
+    assert scores["ios_region_perfect"] < 0.5 and scores["ios_visible"] > 0.97 and scores["ios_visible_base"] == 0.0
+    # A third view sees the handle whole: there the two measures agree.
+    whole = edit_quality.view_fill("crate", views, 2, beta, resolution, nothing, nothing)
+    assert whole["ios_region_perfect"] > 0.95 and whole["ios_visible"] == 0.0

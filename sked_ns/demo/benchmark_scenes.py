@@ -245,3 +245,16 @@ def write_benchmark(name: str, folder: Path, count: int = 48, size: int = IMAGE_
     _write_frames(folder / "target", targets, size)
     save_sketch_set(scene.sketch_set(), folder / "sketches", overwrite=True)
     return {"data": folder / "data", "target": folder / "target", "sketches": folder / "sketches"}
+
+
+# ---- the sketch views' ground truth -----------------------------------------------------------
+def visible_added_part(scene, camera_to_world: np.ndarray, focal: float, width: int, height: int) -> Dict[str, Tensor]:
+    """Where the edited scene shows the added part at one camera ("visible", h x w), and its first surface hits.
+
+    A sketch is the added part's whole silhouette, hidden parts included: where kept content lies in
+    front (the crate's wall before half the handle), a correct edit shows the kept content, so that
+    pixel is no fill the edit owes the sketch.
+    """
+    target = scene.render_target(camera_to_world, focal, width, height)
+    on_added_part = scene.edit_sdf(target["points"]) < 2e-3  # the trace's hit test is |sdf| < 1e-3
+    return {"visible": target["hit"] & on_added_part, "hit": target["hit"], "points": target["points"]}
