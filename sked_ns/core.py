@@ -71,6 +71,9 @@ class SkedOptions:
     thresholded at occupancy_threshold (sharpens a soft base: -1.2 vs -0.2 dB kept; docs/method.md, L_pres)."""
     lambda_sil: float = 1.0
     """Weight of L_sil."""
+    silhouette_normalisation: Literal["image", "sketch"] = "image"
+    """L_sil per image pixel (paper) or per sketch pixel ("sketch": scaled so a sketch covering 5% of its frame
+    weighs the same; a sketch covering less pulls harder than under the paper's)."""
     colour_residual: bool = True
     """Give new content its own colour capacity near the sketches (colour_residual.py): a colour the base never shows
     is reached without moving the colour MLP everything kept shares. False: the paper's model."""
@@ -437,7 +440,8 @@ class SkedMixin:
                     accumulation = self.editable_accumulation(sketch_samples.frustums.get_positions(), sketch["_weights"],
                                                               accumulation, sketch.get("_ray_indices"))
                 accumulation = accumulation.reshape(sketch_masks.shape)
-                losses["silhouette_loss"] = config.effective_lambda_sil * silhouette_loss(accumulation, sketch_masks)
+                losses["silhouette_loss"] = config.effective_lambda_sil * silhouette_loss(
+                    accumulation, sketch_masks, config.silhouette_normalisation)
                 metrics["sketch_coverage"] = (accumulation.detach() > 0.5).float().mul(sketch_masks).sum() / sketch_masks.sum().clamp_min(1)
         rendered = [view] + ([sketch] if sketch is not None else [])
         if photo is not None and config.effective_lambda_photo > 0:

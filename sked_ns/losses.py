@@ -71,14 +71,31 @@ def preservation_loss(
     return per_sample.mean() if per_sample.numel() else per_sample.sum()
 
 
+# Under "sketch" normalisation L_sil weighs every sketch as image normalisation weighs one covering this
+# fraction of its frame (the demo's sketches cover 5-6%), so lambda_sil keeps its scale.
+REFERENCE_SKETCH_COVERAGE = 0.05
+
+
 def silhouette_loss(
-    accumulation: Float[Tensor, "num_views height width"], masks: Float[Tensor, "num_views height width"]
+    accumulation: Float[Tensor, "num_views height width"], masks: Float[Tensor, "num_views height width"],
+    normalisation: str = "image",
 ) -> Tensor:
-    """L_sil = -1/(HWN) sum_j sum_x M_j(x) log alpha_j(x) (paper Eq. 5): fill the sketches."""
+    """L_sil = -1/(HWN) sum_j sum_x M_j(x) log alpha_j(x) (paper Eq. 5): fill the sketches.
+
+    normalisation "sketch": the sum over the sketches' area instead of the images' (times
+    REFERENCE_SKETCH_COVERAGE), so small sketches pull as hard in total as large ones. Any shapes: the
+    datamanager passes its views' pixels concatenated.
+    """
     # log of an affine squash into [eps, 1]: finite with a gradient at alpha = 0, exactly 0 at alpha = 1.
     alpha = accumulation.float()
     alpha = alpha + (alpha.clamp(0.0, 1.0) - alpha).detach()  # clamp the value, keep the gradient at 0
-    return -(masks.float() * torch.log(ALPHA_EPS + (1.0 - ALPHA_EPS) * alpha)).mean()
+    per_pixel = -(masks.float() * torch.log(ALPHA_EPS + (1.0 - ALPHA_EPS) * alpha))
+    if normalisation == "image":
+        return per_pixel.mean()
+    if normalisation != "sketch":
+        raise ValueError(f"silhouette normalisation must be 'image' or 'sketch', got {normalisation!r}.")
+    # Views may differ in size (the datamanager concatenates their pixels): one mean over all sketch pixels.
+    return REFERENCE_SKETCH_COVERAGE * per_pixel.sum() / masks.float().sum().clamp_min(1.0)  # empty: 0, not NaN
 
 
 def sparsity_loss(accumulation: Tensor) -> Tensor:

@@ -7,7 +7,8 @@ import math
 import pytest
 import torch
 
-from sked_ns.losses import ALPHA_EPS, PROBABILITY_EPS, preservation_loss, silhouette_loss, sparsity_loss
+from sked_ns.losses import (ALPHA_EPS, PROBABILITY_EPS, REFERENCE_SKETCH_COVERAGE, preservation_loss, silhouette_loss,
+                            sparsity_loss)
 
 DELTA = 0.07
 
@@ -113,17 +114,43 @@ def test_empty_region_still_pulls_density_up():
     assert (accumulation.grad < 0).all() and torch.isfinite(accumulation.grad).all()
 
 
+def test_sketch_normalised_silhouette_loss_by_hand():
+    accumulation = torch.tensor([[[1.0, 0.5], [0.0, 0.25]], [[0.5, 0.5], [0.5, 0.5]]])
+    masks = torch.tensor([[[1.0, 1.0], [0.0, 1.0]], [[0.0, 0.0], [0.0, 1.0]]])
+    squash = lambda a: math.log(ALPHA_EPS + (1 - ALPHA_EPS) * a)  # noqa: E731
+    expected = REFERENCE_SKETCH_COVERAGE * -(squash(1.0) + squash(0.5) + squash(0.25) + squash(0.5)) / 4
+    assert silhouette_loss(accumulation, masks, "sketch").item() == pytest.approx(expected, rel=1e-6)
+    # As the datamanager passes them: the views' pixels concatenated.
+    assert silhouette_loss(accumulation.flatten(), masks.flatten(), "sketch").item() == pytest.approx(expected, rel=1e-6)
+    with pytest.raises(ValueError, match="normalisation"):
+        silhouette_loss(accumulation, masks, "pixels")
+
+
+def test_sketch_normalisation_pulls_a_small_sketch_as_hard_as_a_large_one():
+    # Image normalisation (paper): each sketch ray gets the same push, so a small sketch gets little in total.
+    small, large = torch.zeros(1, 10, 10), torch.zeros(1, 10, 10)
+    small[0, :1, :2], large[0, :5, :] = 1.0, 1.0
+    for normalisation, ratio in (("image", 2 / 50), ("sketch", 1.0)):
+        pulls = []
+        for mask in (small, large):
+            accumulation = torch.full((1, 10, 10), 0.5, requires_grad=True)
+            silhouette_loss(accumulation, mask, normalisation).backward()
+            pulls.append(-accumulation.grad.sum().item())
+        assert pulls[0] / pulls[1] == pytest.approx(ratio, rel=1e-5)
+
+
+@pytest.mark.parametrize("normalisation", ["image", "sketch"])
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float16])
 @pytest.mark.parametrize("alpha", [0.0, 1.0, 0.5])
 @pytest.mark.parametrize("mask_fill", [0.0, 1.0])
-def test_silhouette_and_sparsity_finite_at_extremes(dtype, alpha, mask_fill):
+def test_silhouette_and_sparsity_finite_at_extremes(dtype, alpha, mask_fill, normalisation):
     accumulation = torch.full((2, 5, 5), alpha, dtype=dtype, requires_grad=True)
     masks = torch.full((2, 5, 5), mask_fill, dtype=dtype)
-    total = silhouette_loss(accumulation, masks) + sparsity_loss(accumulation)
+    total = silhouette_loss(accumulation, masks, normalisation) + sparsity_loss(accumulation)
     total.backward()
     assert torch.isfinite(total) and torch.isfinite(accumulation.grad).all()
     if mask_fill == 0.0:  # empty masks: nothing to fill
-        assert silhouette_loss(accumulation, masks).item() == 0.0
+        assert silhouette_loss(accumulation, masks, normalisation).item() == 0.0
 
 
 def test_no_samples_gives_zero():
