@@ -112,6 +112,15 @@ def test_benchmark_command_lines_parse_as_ns_train_parses_them(tmp_path):
     config = tyro.cli(AnnotatedBaseConfigUnion, args=edit_quality.edit_arguments(
         tmp_path / "base", paths, "crate", protocol, tmp_path / "out", extra=quiet))
     assert config.pipeline.model.guidance.weight == 0 and config.pipeline.model.guidance.target == "crate"
+    per_sketch = edit_quality.VARIANTS[edit_quality._variant("sketch-normalised-sil")]
+    config = tyro.cli(AnnotatedBaseConfigUnion, args=edit_quality.edit_arguments(
+        tmp_path / "base", paths, "antenna", protocol, tmp_path / "out", extra=per_sketch))
+    assert config.pipeline.model.silhouette_normalisation == "sketch"
+    faster = edit_quality.VARIANTS[edit_quality._variant("grid-lr-3x")]
+    config = tyro.cli(AnnotatedBaseConfigUnion, args=edit_quality.edit_arguments(
+        tmp_path / "base", paths, "antenna", protocol, tmp_path / "out", extra=faster))
+    grids = config.optimizers["hash_grids"]
+    assert grids["optimizer"].lr == 0.15 and grids["scheduler"].lr_final == 0.015
 
     arguments = gpu_check.edit_arguments(tmp_path / "base", tmp_path, tmp_path / "sd", "nerfacto", 7, "tiny", "cpu")
     config = tyro.cli(AnnotatedBaseConfigUnion, args=["sked", *arguments])
