@@ -72,7 +72,7 @@ def preservation_loss(
 
 
 # Under "sketch" normalisation L_sil weighs every sketch as image normalisation weighs one covering this
-# fraction of its frame (the demo's sketches cover 5-6%), so lambda_sil keeps its scale.
+# fraction of its frame (the authors' published sketches cover 2.4% and 5%, the demo's 5-6%): lambda_sil keeps its scale.
 REFERENCE_SKETCH_COVERAGE = 0.05
 
 
