@@ -110,15 +110,17 @@ def sketch_view_fill(edit_run: Path, scene: str, sketches: Path, resolution: int
     """Region IoS over the sketch pixels where the exact target shows the added part (`ios_visible`), and the
     region IoS the exact target itself scores (`ios_region_perfect`): a sketch holds the part's hidden
     pixels too, so a correct edit cannot fill all of it, and region IoS alone cannot say how far it is off."""
+    from sked_ns.preservation import SketchDistanceField
     from sked_ns.render import load_pipeline, render_at, render_base_at
     from sked_ns.sketches import load_sketch_set
 
     model = load_pipeline(edit_run).model
     data_views = load_sketch_set(sketches).views
-    views = [view_fill(scene, data_views, index, model.config.beta, resolution,
+    field = SketchDistanceField(data_views)  # w is the same in the data frame: its distances are in image widths
+    views = [view_fill(scene, data_view, field, model.config.beta, resolution,
                        1.0 - render_at(model, model_view, resolution)["preservation_weight"],
                        1.0 - render_base_at(model, model_view, resolution)["preservation_weight"])
-             for index, model_view in enumerate(model.sketch_set.views)]
+             for data_view, model_view in zip(data_views, model.sketch_set.views)]
     scored = [view for view in views if "ios_visible" in view]
     mean = lambda key: float(np.mean([view[key] for view in scored])) if scored else None  # noqa: E731
     return {"ios_visible": mean("ios_visible"), "ios_visible_base": mean("ios_visible_base"),
@@ -128,23 +130,21 @@ def sketch_view_fill(edit_run: Path, scene: str, sketches: Path, resolution: int
             "sketch_views": views}
 
 
-def view_fill(scene: str, data_views, index: int, beta: float, resolution: int, editable_opacity, base_editable_opacity
+def view_fill(scene: str, data_view, field, beta: float, resolution: int, editable_opacity, base_editable_opacity
               ) -> Dict:
     """One sketch view's fill scores, given edit and base renders of the opacity the edit may change (1 - the
-    pixel's preservation weight) at `resolution`; the exact target is traced in the data frame."""
+    pixel's preservation weight) at `resolution`; the exact target is traced in the data frame, where `field`
+    (the sketches' SketchDistanceField) gives its preservation weight."""
     import torch
 
     from sked_ns.cameras import sketch_view_at
     from sked_ns.demo.benchmark_scenes import scene_named, visible_added_part
     from sked_ns.metrics import intersection_over_sketch
-    from sked_ns.preservation import SketchDistanceField
 
-    data_view = data_views[index]
     camera, mask = sketch_view_at(data_view, resolution)
     truth = visible_added_part(scene_named(scene), np.asarray(data_view.camera_to_world)[:3], float(camera.fx),
                                int(camera.width), int(camera.height))
-    # w is the same in the data frame as in the model's: its distances are in image widths.
-    weight = SketchDistanceField(data_views).preservation_weight(truth["points"].reshape(-1, 3), beta)
+    weight = field.preservation_weight(truth["points"].reshape(-1, 3), beta)
     perfect = torch.where(truth["hit"], 1.0 - weight.reshape(mask.shape), torch.zeros(mask.shape))
     visible = mask & truth["visible"]
     entry = {"visible_fraction": float(visible.sum() / mask.sum()), "ios_region_perfect": intersection_over_sketch(perfect, mask)}

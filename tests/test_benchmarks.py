@@ -146,11 +146,12 @@ def test_sketch_view_fill_credits_a_correct_edit_that_kept_content_hides():
     # The visible part lies in the sketch; from this view the crate hides most of it.
     assert (truth["visible"] & ~mask).sum() <= 0.05 * truth["visible"].sum()
     assert (truth["visible"] & mask).sum() < 0.5 * mask.sum()
-    weight = SketchDistanceField(views).preservation_weight(truth["points"].reshape(-1, 3), beta).reshape(mask.shape)
+    field = SketchDistanceField(views)
+    weight = field.preservation_weight(truth["points"].reshape(-1, 3), beta).reshape(mask.shape)
     exact = torch.where(truth["hit"], 1.0 - weight, torch.zeros_like(weight))
     nothing = torch.zeros(mask.shape)
-    scores = edit_quality.view_fill("crate", views, 0, beta, resolution, exact, nothing)
+    scores = edit_quality.view_fill("crate", views[0], field, beta, resolution, exact, nothing)
     assert scores["ios_region_perfect"] < 0.5 and scores["ios_visible"] > 0.97 and scores["ios_visible_base"] == 0.0
     # A third view sees the handle whole: there the two measures agree.
-    whole = edit_quality.view_fill("crate", views, 2, beta, resolution, nothing, nothing)
+    whole = edit_quality.view_fill("crate", views[2], field, beta, resolution, nothing, nothing)
     assert whole["ios_region_perfect"] > 0.95 and whole["ios_visible"] == 0.0
