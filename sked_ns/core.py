@@ -37,6 +37,7 @@ from sked_ns.losses import occupancy_log_probabilities, preservation_loss, silho
 from sked_ns.photo_anchor import anchor_rays, correct_poses, editable_box, rays_away_from_edit
 from sked_ns.preservation import SketchDistanceField, check_beta
 from sked_ns.sketches import SketchSet
+from sked_ns.validation import check_sketch_pixels
 
 
 def per_ray_sum(values: Tensor, accumulation: Tensor, ray_indices: Optional[Tensor] = None) -> Tensor:
@@ -162,6 +163,7 @@ class SkedMixin:
         if getattr(self.field, "embedding_appearance", None) is not None:
             self.field.embedding_appearance.requires_grad_(False)
         warn_degenerate_settings(self.config, sketch_set)
+        check_sketch_pixels(sketch_set, self.config.silhouette_resolution)
         self.colour_residual = (ColourResidual(self.edit_box.min, self.edit_box.max)
                                 if self.config.colour_residual else None)
         self.guidance: Optional[Guidance] = None  # plain attribute: never in a checkpoint

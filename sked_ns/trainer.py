@@ -25,6 +25,7 @@ from sked_ns.safe_step import GuardedGradScaler, GuardedOptimizers, StepGuard
 from sked_ns.core import SkedOptions
 from sked_ns.nerfacto_model import SkedNerfactoModelConfig
 from sked_ns.ngp_model import SkedNGPModelConfig
+from sked_ns.validation import check_options
 
 
 @dataclass
@@ -42,6 +43,7 @@ class SkedTrainerConfig(TrainerConfig):
 
 def resolve_edit(config: SkedTrainerConfig) -> None:
     """Fill the model config from --load-dir and the aliases; safe to call twice."""
+    check_options(config.pipeline.model, config.pipeline.datamanager)  # bad values refused before anything is written
     # Learning rates decay to 0.1x by the end of this edit (docs/method.md, Optimisation), however long --max-num-iterations makes it.
     for optimizer in config.optimizers.values():
         if hasattr(optimizer.get("scheduler"), "max_steps"):

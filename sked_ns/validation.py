@@ -1,0 +1,184 @@
+"""Range checks for SKED's settings: refused before anything is written, named as the user types them.
+
+A setting outside its legal range (a negative loss weight, a resolution of 0) would run and silently
+wreck the edit, or fail deep inside with a shape error; one that is legal but almost surely a mistake
+(a guidance render far larger than the paper's 128) gets a warning. `check_options` runs when
+`ns-train sked` resolves its config (trainer.resolve_edit), `check_sketch_pixels` once the sketch set
+is known (model set-up).
+"""
+
+from __future__ import annotations
+
+import math
+import warnings
+from typing import List, Optional, Sequence
+
+import torch
+
+MODEL_FLAGS = "--pipeline.model."
+DATAMANAGER_FLAGS = "--pipeline.datamanager."
+LOSS_WEIGHTS = ("lambda_pres", "lambda_colour", "lambda_sil", "lambda_sp", "lambda_carve", "lambda_photo")
+"""Every weight of SKED's objective (paper Eq. 6 and ours): a negative one rewards what its loss penalises."""
+MIN_SKETCH_PIXELS = 16
+"""A sketch covering fewer pixels than this in its L_sil render barely pulls (a 4x4 patch)."""
+LARGE_GUIDANCE_RESOLUTION = 512
+"""Stable Diffusion's own input size; the paper renders 128 and upsamples."""
+SMALL_GUIDANCE_RESOLUTION = 32
+BYTES_PER_GUIDANCE_SAMPLE = 1024
+"""Rough memory one sample of the guidance render holds for the backward pass (field activations and their
+gradients): an order of magnitude, enough to refuse a size that surely cannot fit."""
+DEFAULT_SAMPLES_PER_RAY = 400
+"""nerfacto's samples per ray (256 + 96 proposal, 48 field) when the model does not say."""
+
+
+class SkedOptionError(ValueError):
+    """A setting out of its legal range; the message names the flag as typed and what to pass."""
+
+
+class SkedOptionWarning(UserWarning):
+    """A legal setting that almost surely defeats the edit."""
+
+
+def flag(name: str, prefix: str = MODEL_FLAGS) -> str:
+    """A config field as the user types it: `lambda_pres` -> `--pipeline.model.lambda-pres`."""
+    return prefix + name.replace("_", "-")
+
+
+def _is_number(value) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+
+
+def _is_whole(value) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool)
+
+
+def refuse(problems: Sequence[str]) -> None:
+    """The one place a bad setting is refused (all problems at once, so one fix-up run is enough)."""
+    if problems:
+        raise SkedOptionError("Bad SKED setting" + ("s" if len(problems) > 1 else "") + ":\n  " + "\n  ".join(problems))
+
+
+def warn(message: str) -> None:
+    warnings.warn(message, SkedOptionWarning, stacklevel=3)
+
+
+def option_problems(options) -> List[str]:
+    """What is out of range in a SkedOptions (the model config), each naming its flag."""
+    problems = []
+    for name in LOSS_WEIGHTS:
+        value = getattr(options, name)
+        if not (_is_number(value) and value >= 0):
+            problems.append(f"{flag(name)} {value!r}: a loss weight must be a finite number >= 0 (a negative weight "
+                            f"rewards what the loss penalises); 0 turns the loss off.")
+    positive = {
+        "beta": "image widths over which preservation fades (paper 0.005-1, default 0.025)",
+        "preservation_delta": "the step length turning density into occupancy (default 0.07)",
+        "samples_per_ray_scale": "samples per ray relative to the base's (1 = the base's)",
+    }
+    for name, meaning in positive.items():
+        value = getattr(options, name)
+        if not (_is_number(value) and value > 0):
+            problems.append(f"{flag(name)} {value!r}: must be a finite number > 0 ({meaning}).")
+    if not (_is_number(options.occupancy_threshold) and options.occupancy_threshold >= 0):
+        problems.append(f"{flag('occupancy_threshold')} {options.occupancy_threshold!r}: a density, must be a "
+                        "finite number >= 0 (default 5).")
+    if not (_is_number(options.photo_threshold) and 0 <= options.photo_threshold <= 1):
+        problems.append(f"{flag('photo_threshold')} {options.photo_threshold!r}: a preservation weight, must be in "
+                        "[0, 1] (default 0.99).")
+    for name in ("guidance_resolution", "silhouette_resolution"):
+        value = getattr(options, name)
+        if not (_is_whole(value) and value > 0):
+            problems.append(f"{flag(name)} {value!r}: must be a whole number of pixels > 0 (the paper's 128).")
+    if not (_is_whole(options.edit_box_warmup) and options.edit_box_warmup >= 0):
+        problems.append(f"{flag('edit_box_warmup')} {options.edit_box_warmup!r}: must be a whole number of "
+                        "iterations >= 0.")
+    return problems
+
+
+def datamanager_problems(datamanager) -> List[str]:
+    """What is out of range in the SKED datamanager's random-view and photo-batch settings."""
+    problems = []
+
+    def check_range(name: str, low: float, high: float, meaning: str) -> None:
+        values = tuple(getattr(datamanager, name))
+        if not (len(values) == 2 and all(_is_number(v) for v in values) and low <= values[0] <= values[1] <= high):
+            problems.append(f"{flag(name, DATAMANAGER_FLAGS)} {' '.join(map(str, values))}: must be two numbers, "
+                            f"smallest first, within {meaning}.")
+
+    check_range("elevation_range", -90.0, 90.0, "[-90, 90] degrees")
+    check_range("azimuth_range", -360.0, 360.0, "[-360, 360] degrees")
+    check_range("fov_range", 1e-3, 179.0, "(0, 179] degrees")
+    check_range("radius_scale_range", 1e-3, math.inf, "(0, inf) (times the sketch cameras' distance)")
+    rays = datamanager.train_num_rays_per_batch
+    if not (_is_whole(rays) and rays > 0):
+        problems.append(f"{flag('train_num_rays_per_batch', DATAMANAGER_FLAGS)} {rays!r}: must be a whole number "
+                        "of rays > 0 (the photo anchor's batch; --pipeline.model.lambda-photo 0 turns it off).")
+    return problems
+
+
+def device_memory() -> int:
+    """Bytes the edit can use: the GPU's, else the machine's RAM."""
+    if torch.cuda.is_available():
+        return int(torch.cuda.get_device_properties(torch.cuda.current_device()).total_memory)
+    import psutil
+
+    return int(psutil.virtual_memory().total)
+
+
+def guidance_render_bytes(options) -> float:
+    """Rough memory of the random view rendered for guidance, with what backward needs."""
+    samples = getattr(options, "num_nerf_samples_per_ray", None)
+    proposals = getattr(options, "num_proposal_samples_per_ray", ())
+    per_ray = (samples + sum(proposals)) if samples is not None else DEFAULT_SAMPLES_PER_RAY
+    return options.guidance_resolution ** 2 * per_ray * options.samples_per_ray_scale * BYTES_PER_GUIDANCE_SAMPLE
+
+
+def warn_unusual_options(options, memory: Optional[int] = None) -> List[str]:
+    """Legal settings that are almost surely a mistake: warned; a guidance render that cannot fit: refused."""
+    messages, resolution = [], options.guidance_resolution
+    if resolution > LARGE_GUIDANCE_RESOLUTION:
+        needed, memory = guidance_render_bytes(options), device_memory() if memory is None else memory
+        if needed > memory:
+            refuse([f"{flag('guidance_resolution')} {resolution}: a {resolution}x{resolution} render with its "
+                    f"gradients needs about {needed / 2**30:.0f} GiB, more than this device's {memory / 2**30:.0f} GiB. "
+                    f"Use at most {LARGE_GUIDANCE_RESOLUTION} (the paper uses 128)."])
+        messages.append(f"{flag('guidance_resolution')} {resolution}: larger than Stable Diffusion's "
+                        f"{LARGE_GUIDANCE_RESOLUTION}-pixel input and {(resolution / 128) ** 2:.0f}x the paper's 128 "
+                        f"in rays per step (about {needed / 2**30:.1f} GiB); nothing is gained past 512.")
+    elif resolution < SMALL_GUIDANCE_RESOLUTION:
+        messages.append(f"{flag('guidance_resolution')} {resolution}: a {resolution}x{resolution} view shows the "
+                        "guidance almost no shape (the paper uses 128).")
+    if options.lambda_photo > 0 and options.photo_threshold >= 1:
+        messages.append(f"{flag('photo_threshold')} 1: no photo ray has every weight above 1, so the photo anchor "
+                        "never acts; use --pipeline.model.lambda-photo 0 to turn it off, or 0.99.")
+    elif options.lambda_photo > 0 and options.photo_threshold < 0.5:
+        messages.append(f"{flag('photo_threshold')} {options.photo_threshold:g}: photo rays through the editable "
+                        "region would hold it to the base's photos, undoing the edit (default 0.99).")
+    for message in messages:
+        warn(message)
+    return messages
+
+
+def check_options(options, datamanager=None) -> None:
+    """Refuse out-of-range SKED settings (model config, and the SKED datamanager's if given); warn on odd ones."""
+    refuse(option_problems(options) + (datamanager_problems(datamanager) if datamanager is not None else []))
+    warn_unusual_options(options)
+
+
+def check_sketch_pixels(sketch_set, silhouette_resolution: int) -> List[int]:
+    """Each sketch's pixel count in its L_sil render (longer side `silhouette_resolution`): a sketch under one
+    pixel there makes L_sil exactly 0 for the whole edit (refused), one under a few pixels barely pulls (warned)."""
+    from sked_ns.cameras import sketch_view_at
+
+    counts = [int(sketch_view_at(view, silhouette_resolution)[1].sum()) for view in sketch_set.views]
+    empty = [view.name or f"view {i}" for i, (view, count) in enumerate(zip(sketch_set.views, counts)) if count == 0]
+    if empty:
+        refuse([f"{flag('silhouette_resolution')} {silhouette_resolution}: the sketch of {', '.join(empty)} covers "
+                "no pixel of its silhouette render, so L_sil would be 0 for the whole edit. Raise it (the paper uses "
+                "128) or sketch a larger region."])
+    small = [f"{view.name or f'view {i}'} ({count} px)" for i, (view, count) in enumerate(zip(sketch_set.views, counts))
+             if count < MIN_SKETCH_PIXELS]
+    if small:
+        warn(f"{flag('silhouette_resolution')} {silhouette_resolution}: sketches cover fewer than {MIN_SKETCH_PIXELS} "
+             f"pixels of their silhouette render: {', '.join(small)}; L_sil can hardly shape the edit (paper: 128).")
+    return counts

@@ -1,0 +1,108 @@
+"""Range checks of every SKED setting: refused naming the flag as typed, warned where legal but surely a mistake."""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+import warnings
+
+import numpy as np
+import pytest
+
+from sked_ns.config import PRESETS, read_preset
+from sked_ns.datamanager import SkedDataManagerConfig
+from sked_ns.nerfacto_model import SkedNerfactoModelConfig
+from sked_ns.ngp_model import SkedNGPModelConfig
+from sked_ns.sketches import SketchSet, SketchView
+from sked_ns.validation import (SkedOptionError, SkedOptionWarning, check_options, check_sketch_pixels,
+                                warn_unusual_options)
+
+from conftest import random_pose
+
+
+@pytest.mark.parametrize("name", ["lambda_pres", "lambda_colour", "lambda_sil", "lambda_sp", "lambda_carve",
+                                  "lambda_photo"])
+@pytest.mark.parametrize("value", [-5.0, float("nan"), float("inf")])
+def test_a_negative_or_non_finite_weight_is_refused_by_its_flag(name, value):
+    options = SkedNerfactoModelConfig(**{name: value})
+    with pytest.raises(SkedOptionError, match=f"--pipeline.model.{name.replace('_', '-')} "):
+        check_options(options)
+
+
+@pytest.mark.parametrize("name, value", [
+    ("beta", 0.0), ("beta", -0.1), ("preservation_delta", 0.0), ("samples_per_ray_scale", 0.0),
+    ("samples_per_ray_scale", float("nan")), ("occupancy_threshold", -1.0), ("photo_threshold", 1.5),
+    ("photo_threshold", -0.1), ("guidance_resolution", 0), ("guidance_resolution", -64),
+    ("silhouette_resolution", 0), ("silhouette_resolution", -1), ("silhouette_resolution", 12.5),
+    ("edit_box_warmup", -1),
+])
+def test_each_field_out_of_its_range_is_refused_by_its_flag(name, value):
+    with pytest.raises(SkedOptionError, match=f"--pipeline.model.{name.replace('_', '-')} "):
+        check_options(SkedNerfactoModelConfig(**{name: value}))
+
+
+@pytest.mark.parametrize("name, value", [
+    ("fov_range", (0.0, 80.0)), ("fov_range", (80.0, 40.0)), ("elevation_range", (-100.0, 90.0)),
+    ("radius_scale_range", (-1.0, 1.2)), ("azimuth_range", (10.0, -10.0)), ("train_num_rays_per_batch", 0),
+])
+def test_random_view_and_photo_batch_settings_are_checked(name, value):
+    datamanager = SkedDataManagerConfig(**{name: value})
+    with pytest.raises(SkedOptionError, match=f"--pipeline.datamanager.{name.replace('_', '-')} "):
+        check_options(SkedNerfactoModelConfig(), datamanager)
+
+
+def test_all_problems_are_reported_at_once():
+    with pytest.raises(SkedOptionError) as error:
+        check_options(SkedNerfactoModelConfig(lambda_pres=-5.0, lambda_sil=-1.0, beta=0.0))
+    assert all(f in str(error.value) for f in ("lambda-pres", "lambda-sil", "beta"))
+
+
+@pytest.mark.parametrize("config", [SkedNerfactoModelConfig, SkedNGPModelConfig])
+def test_defaults_and_every_preset_pass_silently(config):
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", SkedOptionWarning)
+        check_options(config(), SkedDataManagerConfig())
+        for name in PRESETS:
+            check_options(dataclasses.replace(config(), **read_preset(name)["model"]))
+        check_options(config(lambda_pres=0.0, lambda_photo=0.0, edit_box_warmup=0))  # ablations are legal
+
+
+def test_a_guidance_render_that_cannot_fit_is_refused_and_a_large_one_warned():
+    with pytest.raises(SkedOptionError, match="guidance-resolution 4096.*GiB.*at most 512"):
+        warn_unusual_options(SkedNerfactoModelConfig(guidance_resolution=4096), memory=140 * 2**30)
+    with pytest.warns(SkedOptionWarning, match="guidance-resolution 1024"):
+        warn_unusual_options(SkedNerfactoModelConfig(guidance_resolution=1024), memory=2**50)
+
+
+def test_a_photo_threshold_that_silences_the_anchor_is_warned():
+    with pytest.warns(SkedOptionWarning, match="photo-threshold 1: .*never acts"):
+        check_options(SkedNerfactoModelConfig(photo_threshold=1.0))
+
+
+def test_resolve_edit_refuses_before_anything_is_written(tmp_path):
+    from sked_ns.config import sked_method
+
+    config = copy.deepcopy(sked_method.config)
+    config.output_dir = tmp_path
+    config.pipeline.model = SkedNerfactoModelConfig(lambda_pres=-5.0)
+    with pytest.raises(SkedOptionError, match="--pipeline.model.lambda-pres -5.0"):
+        config.save_config()
+    assert not any(tmp_path.iterdir())
+
+
+def _view(size: int, blob: int, rng) -> SketchView:
+    mask = np.zeros((size, size), dtype=bool)
+    mask[size // 2: size // 2 + blob, size // 2: size // 2 + blob] = True
+    return SketchView(mask=mask, camera_to_world=random_pose(rng), fl_x=size, fl_y=size, cx=size / 2, cy=size / 2,
+                      name=f"masks/{blob}px.png")
+
+
+def test_a_sketch_under_a_pixel_at_the_silhouette_resolution_is_refused(rng):
+    sketches = SketchSet(views=[_view(256, 40, rng), _view(256, 4, rng)])
+    assert check_sketch_pixels(sketches, 128) == [400, 4]  # 40 px at half size: 20 x 20
+    with pytest.raises(SkedOptionError, match=r"silhouette-resolution 32: the sketch of masks/4px.png covers no pixel"):
+        check_sketch_pixels(sketches, 32)
+    with pytest.raises(SkedOptionError, match="silhouette-resolution 1: "):
+        check_sketch_pixels(sketches, 1)
+    with pytest.warns(SkedOptionWarning, match=r"masks/4px.png \(4 px\)"):
+        check_sketch_pixels(sketches, 128)
