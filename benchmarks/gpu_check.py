@@ -16,8 +16,9 @@ c. In the same process, times the bare compiled SD step (VAE encode forward + ba
 d. Checks nerfacc's CUDA marcher against the torch marcher on the edit's own grid, and runs
    the tests that only run on CUDA.
 e. Writes benchmarks/results/gpu_check.json: per edit the setup, compile and per-iteration
-   times, the 10,000-iteration extrapolation (compile, checkpoints and evaluation images
-   included), the ratio to the SD floor and the peak GPU memory; and a torch-profiler table
+   times (steady iterations, the end-of-training save left out), the 10,000-iteration extrapolation
+   (compile, each checkpoint once and evaluation images included), the ratio to the SD floor, the
+   peak GPU memory and the process's peak RSS; and a torch-profiler table
    of the nerfacto edit's most expensive operations beside it (gpu_check_profile.txt).
 
 Every phase is timed and guarded: a failing phase is recorded with its error and the rest run.
@@ -28,13 +29,15 @@ from __future__ import annotations
 import argparse
 import gc
 import json
+import os
 import platform
+import resource
 import subprocess
 import sys
 import tempfile
 import time
 import traceback
-from contextlib import contextmanager, nullcontext
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Callable, Dict, List, Optional
 
@@ -47,6 +50,7 @@ sys.path.insert(0, str(BENCHMARKS))
 
 PAPER_ITERATIONS = 10_000
 PROMPT = "a red chef hat"
+EDIT_BASES = {"nerfacto": "nerfacto", "ngp": "instant-ngp"}  # each edit and the method of its base
 
 
 class Check:
@@ -114,27 +118,66 @@ def ns_train_sked(arguments: List[str]):
     return config
 
 
+def peak_rss_gb() -> float:
+    """The process's peak resident memory so far (Linux reports KiB)."""
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20
+
+
+def iteration_seconds(starts: List[float], saves: List[float], end: float) -> np.ndarray:
+    """Each iteration from its start to the next iteration's start, the next checkpoint save's or the end,
+    whichever comes first: saves (the one at the end of training too) are costed once, on their own."""
+    bounds = np.sort(np.array([*starts[1:], *saves, end]))
+    return np.array([bounds[np.searchsorted(bounds, start, side="right")] - start for start in starts])
+
+
+def steps_due(iterations: int, every: int) -> int:
+    """How many of an edit's steps nerfstudio's loop saves or evaluates at (its own step_check)."""
+    from nerfstudio.utils.misc import step_check
+
+    return sum(step_check(step, every) for step in range(iterations))
+
+
+def checkpoint_saves(iterations: int, steps_per_save: int) -> int:
+    """Checkpoints an edit of ITERATIONS steps writes: nerfstudio's in-loop ones and the one after the loop."""
+    return steps_due(iterations, steps_per_save) + 1
+
+
+def extrapolated_seconds(entry: Dict, iterations: int, steps_per_save: int, steps_per_eval_image: int) -> float:
+    """A whole edit's wall time from the timed run: setup, the first (compiling) iteration, the steady ones,
+    and each checkpoint and evaluation image nerfstudio's loop would add, at the preset's cadence."""
+    return (entry["setup_seconds"] + entry["load_diffusion_seconds"] + entry["first_iteration_seconds"]
+            + (iterations - 1) * entry["ms_per_iteration"] / 1000
+            + checkpoint_saves(iterations, steps_per_save) * entry["checkpoint_seconds"]
+            + steps_due(iterations, steps_per_eval_image) * entry["eval_image_seconds"])
+
+
 class StepClock:
-    """Wall time of every training iteration, callbacks and logging included (entry to next entry)."""
+    """Wall time of every training iteration, callbacks and logging included, checkpoint saves left out."""
 
     def __init__(self, trainer, device: str) -> None:
-        self.device, self.entries = device, []
-        original = trainer.train_iteration
+        self.trainer, self.device, self.entries, self.saves, self.end = trainer, device, [], [], float("nan")
+        original_iteration, original_save = trainer.train_iteration, trainer.save_checkpoint
 
         def timed(step: int):
             sync(device)
             self.entries.append(time.perf_counter())
-            return original(step)
+            return original_iteration(step)
 
-        trainer.train_iteration = timed
+        def save(step: int):
+            sync(device)
+            self.saves.append(time.perf_counter())
+            return original_save(step)
+
+        trainer.train_iteration, trainer.save_checkpoint = timed, save
 
     def close(self) -> None:
         sync(self.device)
-        self.entries.append(time.perf_counter())
+        self.end = time.perf_counter()
+        del self.trainer.train_iteration, self.trainer.save_checkpoint  # the class's own again
 
     @property
     def durations(self) -> np.ndarray:
-        return np.diff(np.array(self.entries))
+        return iteration_seconds(self.entries, self.saves, self.end)
 
 
 def edit_arguments(base: Path, work: Path, sd: Path, name: str, iterations: int, size: str, device: str) -> List[str]:
@@ -184,6 +227,7 @@ def run_edit(check: Check, key: str, base: Path, work: Path, sd: Path, args) -> 
         ms_per_iteration_median=1000 * float(np.median(steady)),
         ms_per_iteration_p90=1000 * float(np.percentile(steady, 90)),
         steady_iterations=len(steady),
+        final_save_seconds=float(clock.end - clock.saves[-1]) if clock.saves else None,
         peak_gpu_memory_gb=peak_gb(device),
         peak_gpu_memory_reserved_gb=torch.cuda.max_memory_reserved() / 2**30 if device == "cuda" else None,
     )
@@ -207,12 +251,9 @@ def run_edit(check: Check, key: str, base: Path, work: Path, sd: Path, args) -> 
     trainer.pipeline.train()
     sync(device)
     entry["eval_image_seconds"] = time.perf_counter() - start
-    saves = PAPER_ITERATIONS // max(sked_preset_cadence("steps_per_save"), 1)
-    evals = PAPER_ITERATIONS // max(sked_preset_cadence("steps_per_eval_image"), 1)
-    entry["extrapolated_10k_seconds"] = (
-        entry["setup_seconds"] + entry["load_diffusion_seconds"] + entry["first_iteration_seconds"]
-        + (PAPER_ITERATIONS - 1) * ms / 1000 + saves * entry["checkpoint_seconds"] + evals * entry["eval_image_seconds"]
-    )
+    entry["extrapolated_10k_seconds"] = extrapolated_seconds(
+        entry, PAPER_ITERATIONS, sked_preset_cadence("steps_per_save"), sked_preset_cadence("steps_per_eval_image"))
+    entry["peak_rss_gb"] = peak_rss_gb()
     return trainer
 
 
@@ -224,26 +265,19 @@ def sked_preset_cadence(name: str) -> int:
 
 def sd_floor(check: Check, trainer, args) -> dict:
     """The bare compiled SD step on a fixed input, as the edit calls it (same autocast, same shapes)."""
+    from sds_iteration import bare_sd_step
+
     device = args.device
-    guidance = trainer.pipeline.model.guidance
     resolution = trainer.pipeline.model.config.guidance_resolution
     image = torch.rand(1, 3, resolution, resolution, device=device, requires_grad=True)
-    context = torch.stack([guidance.embeddings[""], guidance.embeddings["front"]])
-    autocast = (torch.autocast("cuda", dtype=torch.float16) if device == "cuda" and trainer.mixed_precision
-                else nullcontext())
+    warmup = min(max(args.warmup, 1), 3)  # compilation (and its recompiles on CUDA) out of the mean
     times = []
-    for repeat in range(args.floor_repeats + 3):
+    for repeat in range(args.floor_repeats + warmup):
         sync(device)
         start = time.perf_counter()
-        with autocast:
-            latents = guidance.encode(image)
-            t = torch.full((2,), 500, device=device)
-            with torch.no_grad():
-                guidance._unet_forward(torch.cat([latents.detach().to(guidance.dtype)] * 2), t,
-                                       encoder_hidden_states=context)
-        latents.sum().backward()
+        bare_sd_step(trainer, image)
         sync(device)
-        if repeat >= 3:
+        if repeat >= warmup:
             times.append(time.perf_counter() - start)
     floor = 1000 * float(np.mean(times))
     check.result["sd_floor_ms"] = floor
@@ -425,6 +459,7 @@ def main() -> None:
     )
     check.write()
 
+    os.environ.setdefault("HF_HUB_OFFLINE", "1")  # never the hub: the diffusion model is built here, random weights
     from sked_ns.demo import scene as demo_scene
     from sked_ns.demo.base import TinyNerfacto, build_demo_base
     from sked_ns.sketches import save_sketch_set
@@ -439,7 +474,7 @@ def main() -> None:
             demo_scene.write_demo_dataset(work / "data")
             save_sketch_set(demo_scene.demo_sketch_set(), work / "sketches", overwrite=True)
             timing = {}
-            for method in ("nerfacto", "instant-ngp"):
+            for method in [method for edit, method in EDIT_BASES.items() if edit not in skip]:  # none for a skipped edit
                 start = time.perf_counter()
                 bases[method] = build_demo_base(work / "data", work / "bases", steps=args.base_steps, tiny=tiny,
                                                 method=method, device=args.device)
@@ -479,6 +514,7 @@ def main() -> None:
     for key in ("extrapolated_10k_seconds", "compile_seconds", "ms_per_iteration", "ratio_to_sd_floor", "peak_gpu_memory_gb"):
         if key in headline:
             check.result[key] = headline[key]
+    check.result["peak_rss_gb"] = peak_rss_gb()
     check.result["failed_phases"] = [name for name, phase in check.result["phases"].items() if phase["status"] != "ok"
                                      and not phase["status"].startswith("skipped")]
     check.write()
@@ -502,7 +538,8 @@ def summary_table(result: dict) -> str:
                     f"| {'-' if peak is None else f'{peak:.2f}'} | {entry['extrapolated_10k_seconds'] / 60:.1f} |")
     floor = result.get("sd_floor_ms")
     head = f"{result.get('device')}; {result.get('description')}"
-    return "\n".join([head, *rows] + ([f"bare SD step (VAE encode fwd+bwd + UNet batch 2): {floor:.1f} ms"] if floor else []))
+    lines = [head, *rows] + ([f"bare SD step (VAE encode fwd+bwd + UNet batch 2): {floor:.1f} ms"] if floor else [])
+    return "\n".join(lines + ([f"peak RSS {result['peak_rss_gb']:.2f} GB"] if "peak_rss_gb" in result else []))
 
 
 if __name__ == "__main__":

@@ -12,7 +12,7 @@ On CUDA the UNet and VAE encoder are compiled (the default) and fp16.
 Reports the first iteration (compilation included), then the mean of the rest split by stage
 (each stage timed between CUDA synchronisations, which costs a little), the unsynchronised
 iteration time, the bare compiled SD cost (VAE encode + UNet on a fixed input, measured in the
-same process) and their ratio, and peak memory. Writes benchmarks/results/sds_iteration.json.
+same process under the edit's autocast) and their ratio, and peak memory. Writes benchmarks/results/sds_iteration.json.
 """
 
 from __future__ import annotations
@@ -80,6 +80,30 @@ def build_random_stable_diffusion(folder: Path, size: str) -> Path:
     DDPMScheduler(num_train_timesteps=1000, beta_start=0.00085, beta_end=0.012,
                   beta_schedule="scaled_linear").save_pretrained(str(folder / "scheduler"))
     return folder
+
+
+@contextmanager
+def edit_autocast(trainer):
+    """The autocast SkedTrainer.train_iteration runs the model under: nerfstudio's switch, at SKED's dtype."""
+    from sked_ns.trainer import default_autocast_dtype
+
+    device_type = "cpu" if trainer.device.split(":")[0] in ("cpu", "mps") else trainer.device.split(":")[0]
+    with default_autocast_dtype(device_type, trainer.autocast_dtype):
+        with torch.autocast(device_type=device_type, enabled=trainer.mixed_precision):
+            yield
+
+
+def bare_sd_step(trainer, image: torch.Tensor) -> None:
+    """The SD work every SDS iteration pays, on a fixed image: VAE encode forward + backward and the batch-2
+    UNet, under the edit's autocast (another dtype would be another compiled graph: unlike things compared)."""
+    guidance = trainer.pipeline.model.guidance
+    context = torch.stack([guidance.embeddings[""], guidance.embeddings["front"]])
+    with edit_autocast(trainer):
+        latents = guidance.encode(image)
+        t = torch.full((2,), 500, device=image.device)
+        with torch.no_grad():
+            guidance._unet_forward(torch.cat([latents.detach().to(guidance.dtype)] * 2), t, encoder_hidden_states=context)
+    latents.sum().backward()  # outside autocast, as the edit's backward
 
 
 class StageTimer:
@@ -183,18 +207,13 @@ def main() -> None:
         timer.sync()
         iteration_ms = 1000 * (time.perf_counter() - start) / args.iterations
 
-        # The bare (compiled) SD cost on a fixed input, same process: VAE encode forward+backward + UNet batch 2.
+        # The bare (compiled) SD cost on a fixed input, same process and autocast: VAE encode fwd+bwd + UNet batch 2.
         image = torch.rand(1, 3, args.resolution, args.resolution, device=device, requires_grad=True)
         bare = []
         for repeat in range(args.iterations + 1):
             timer.sync()
             start = time.perf_counter()
-            latents = guidance.encode(image)
-            t = torch.full((2,), 500, device=device)
-            with torch.no_grad():
-                context = torch.stack([guidance.embeddings[""], guidance.embeddings["front"]])
-                guidance._unet_forward(torch.cat([latents.detach().to(guidance.dtype)] * 2), t, encoder_hidden_states=context)
-            latents.sum().backward()
+            bare_sd_step(trainer, image)
             timer.sync()
             if repeat:
                 bare.append(time.perf_counter() - start)

@@ -82,8 +82,63 @@ def test_gpu_check_smoke_run_on_the_cpu(tmp_path):
     assert data["ngp"]["model"] == "SkedNGPModel" and data["nerfacto"]["model"] == "SkedNerfactoModel"
     assert data["marcher_check"]["relative_difference"] == 0.0  # the same torch marcher on both sides here
     assert data["ms_per_iteration"] == data["nerfacto"]["ms_per_iteration"] and data["sd_floor_ms"] > 0
+    assert data["nerfacto"]["final_save_seconds"] > 0 and data["peak_rss_gb"] >= data["nerfacto"]["peak_rss_gb"] > 0.1
     assert "RANDOM weights" in data["description"]
     assert output.with_name("gpu_check_profile.txt").stat().st_size > 1000
+
+
+def test_gpu_check_times_steady_iterations_without_the_final_save_and_counts_saves_once():
+    """Synthetic clock: a compiling first step, 1 s steps, then nerfstudio's end-of-training save (5 s)."""
+    import gpu_check
+
+    starts, final_save, end = [0.0, 10.0, 11.0, 12.0], 13.0, 18.0
+    durations = gpu_check.iteration_seconds(starts, [final_save], end)
+    assert durations.tolist() == [10.0, 1.0, 1.0, 1.0]  # the last step ends where the save begins
+    # A save inside the loop (step_check at steps_per_save) ends its step too.
+    assert gpu_check.iteration_seconds([0.0, 4.0], [2.5, 6.0], 7.0).tolist() == [2.5, 2.0]
+    # nerfstudio saves at steps 500, ..., 9500 of range(10_000) and once after the loop: 20, each counted once.
+    assert gpu_check.checkpoint_saves(10_000, 500) == 20 and gpu_check.checkpoint_saves(3, 10**9) == 1
+    entry = {"setup_seconds": 2.0, "load_diffusion_seconds": 3.0, "first_iteration_seconds": float(durations[0]),
+             "ms_per_iteration": 1000 * float(durations[1:].mean()), "checkpoint_seconds": 5.0, "eval_image_seconds": 7.0}
+    total = gpu_check.extrapolated_seconds(entry, 10_000, steps_per_save=500, steps_per_eval_image=1000)
+    assert total == 2.0 + 3.0 + 10.0 + 9_999 * 1.0 + 20 * 5.0 + 9 * 7.0  # eval images at steps 1000, ..., 9000
+
+
+def test_bare_sd_step_runs_under_the_edits_autocast(tmp_path):
+    """The SD floor is timed in the edit's autocast context (dtype included), read inside SkedTrainer's iteration."""
+    import torch
+    from test_nerfstudio_glue import toy_trainer
+
+    import sds_iteration
+
+    def state():
+        return torch.is_autocast_enabled("cpu"), torch.get_autocast_dtype("cpu")
+
+    in_edit = []
+    trainer = toy_trainer(tmp_path, lambda w: in_edit.append(state()) or (w**2).sum())
+    trainer.mixed_precision, trainer.autocast_dtype = True, torch.float16  # not the CPU's default, bfloat16
+    trainer.train_iteration(0)
+
+    in_bare = []
+
+    class Guidance:
+        dtype, embeddings = torch.float32, {"": torch.zeros(77, 8), "front": torch.ones(77, 8)}
+
+        def encode(self, image):
+            in_bare.append(("encode", *state()))
+            return image.mean(1, keepdim=True) * 2
+
+        def _unet_forward(self, latents, t, encoder_hidden_states):
+            in_bare.append(("unet", *state()))
+            assert latents.shape[0] == 2 == encoder_hidden_states.shape[0] and not torch.is_grad_enabled()
+            return latents
+
+    trainer.pipeline.model.guidance = Guidance()
+    image = torch.rand(1, 3, 4, 4, requires_grad=True)
+    sds_iteration.bare_sd_step(trainer, image)
+    assert in_edit == [(True, torch.float16)]
+    assert in_bare == [("encode", *in_edit[0]), ("unet", *in_edit[0])]
+    assert image.grad is not None and state() == (False, torch.bfloat16), "the encoder's backward ran, and autocast is off again"
 
 
 def test_benchmark_command_lines_parse_as_ns_train_parses_them(tmp_path):
