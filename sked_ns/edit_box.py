@@ -8,6 +8,7 @@ instant-ngp bases and aims the random training cameras.
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 from itertools import combinations
 from typing import Optional, Sequence
@@ -22,6 +23,12 @@ from sked_ns.sketches import SketchView
 
 # Frusta start this far in front of each camera (scene units).
 NEAR = 1e-3
+SAME_VIEW_DEG = 1.0
+"""Two views whose rays to their sketches are closer than this are the same view twice."""
+MIN_BASELINE_DEG = 5.0
+"""Views all closer than this cannot bound the sketched region's depth: the box runs out to the scene's bounds."""
+WIDE_BASELINE_DEG = 15.0
+"""Views all closer than this bound the depth loosely (box depth ~ width / tan(angle)): warned."""
 
 
 @dataclass(frozen=True)
@@ -88,12 +95,47 @@ def _feasible(halfspaces, scene_box) -> bool:
     return linprog(np.zeros(3), A_ub=a_ub, b_ub=b_ub, bounds=bounds, method="highs").status != 2
 
 
+def sketch_direction(view: SketchView) -> np.ndarray:
+    """Unit direction from the camera to the centre of its sketch's bounding box."""
+    u0, v0, u1, v1 = view.bounding_box()
+    centre = torch.tensor([[(u0 + u1) / 2, (v0 + v1) / 2]], dtype=torch.float64)
+    ray = pixel_directions(centre, torch.as_tensor(view.camera_to_world, dtype=torch.float64),
+                           torch.as_tensor(view.intrinsics)).numpy()[0]
+    return ray / np.linalg.norm(ray)
+
+
+def check_view_baselines(views: Sequence[SketchView]) -> float:
+    """The widest angle (degrees) between two views' rays to their sketches: depth comes from it alone.
+
+    The same view twice, or views all within MIN_BASELINE_DEG, are refused (the edit box would run out to the
+    scene's bounds); all within WIDE_BASELINE_DEG is warned."""
+    directions = [sketch_direction(view) for view in views]
+    name = lambda i: views[i].name or f"view {i}"  # noqa: E731
+    angles = {(i, j): float(np.degrees(np.arccos(np.clip(directions[i] @ directions[j], -1.0, 1.0))))
+              for i, j in combinations(range(len(views)), 2)}
+    same = [f"{name(i)} and {name(j)}" for (i, j), angle in angles.items() if angle < SAME_VIEW_DEG]
+    if same:
+        raise ValueError(f"The same sketch view twice ({'; '.join(same)}: their rays to the sketch are under "
+                         f"{SAME_VIEW_DEG:g} degree apart), which cannot place the edit in depth. Remove the copy and "
+                         f"sketch the region from a second viewpoint at least {WIDE_BASELINE_DEG:g} degrees away.")
+    widest = max(angles.values())
+    message = (f"The sketch views are at most {widest:.1f} degrees apart ({', '.join(map(name, range(len(views))))}): "
+               "they look along nearly the same line, so the edit's depth is barely bounded and the edit box stretches "
+               f"towards the scene's bounds. Sketch from viewpoints at least {WIDE_BASELINE_DEG:g} degrees apart.")
+    if widest < MIN_BASELINE_DEG:
+        raise ValueError(message)
+    if widest < WIDE_BASELINE_DEG:
+        warnings.warn(message, UserWarning, stacklevel=3)
+    return widest
+
+
 def compute_edit_box(views: Sequence[SketchView], scene_box: Optional[np.ndarray] = None) -> EditBox:
     """Axis-aligned box around the intersection of the views' mask-box frusta.
 
-    `scene_box` ([[x0, y0, z0], [x1, y1, z1]]) clips the result; without it, views whose
-    frusta meet in an unbounded region (near-parallel views) are an error.
+    `scene_box` ([[x0, y0, z0], [x1, y1, z1]]) clips the result. Views that cannot bound the
+    region's depth (the same view twice, near-parallel views) are an error (check_view_baselines).
     """
+    check_view_baselines(views)
     halfspaces = [frustum_halfspaces(view) for view in views]
     scene_box = None if scene_box is None else np.asarray(scene_box, dtype=np.float64)
     low, high, status = _bounds(halfspaces, scene_box)

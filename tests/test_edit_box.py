@@ -9,7 +9,7 @@ from nerfacc import OccGridEstimator
 
 from sked_ns.cameras import project
 from sked_ns.demo.scene import orbit_pose
-from sked_ns.edit_box import EditBox, compute_edit_box, occupancy_grid_mask
+from sked_ns.edit_box import EditBox, check_view_baselines, compute_edit_box, occupancy_grid_mask
 from sked_ns.sketches import SketchView
 
 
@@ -71,13 +71,26 @@ def test_disjoint_sketches_are_named():
         compute_edit_box([left, right])
 
 
-def test_parallel_views_are_unbounded_unless_clipped():
-    a = _cube_view(0, 10, (0, 0, 0), 0.1)
-    b = SketchView(a.mask, a.camera_to_world + np.array([[0, 0, 0, 0.01]] * 3), a.fl_x, a.fl_y, a.cx, a.cy)
-    with pytest.raises(ValueError, match="unbounded"):
-        compute_edit_box([a, b])
-    box = compute_edit_box([a, b], scene_box=np.array([[-1.0] * 3, [1.0] * 3]))
-    assert np.all(box.max <= 1.0) and np.all(box.min >= -1.0)
+def test_the_same_view_twice_is_refused_naming_both_even_with_a_scene_box():
+    a = _cube_view(0, 10, (0, 0, 0), 0.1, name="masks/a.png")
+    b = SketchView(a.mask, a.camera_to_world + np.array([[0, 0, 0, 0.01]] * 3), a.fl_x, a.fl_y, a.cx, a.cy,
+                   name="masks/b.png")
+    for scene_box in (None, np.array([[-1.0] * 3, [1.0] * 3])):  # clipped, it ran with a box out to the scene's
+        with pytest.raises(ValueError, match=r"same sketch view twice \(masks/a.png and masks/b.png"):
+            compute_edit_box([a, b], scene_box=scene_box)
+    with pytest.raises(ValueError, match="same sketch view twice"):  # a good third view does not excuse a copy
+        compute_edit_box([a, b, _cube_view(90, 10, (0, 0, 0), 0.1)])
+
+
+def test_near_parallel_views_are_refused_and_narrow_ones_warned():
+    scene_box = np.array([[-1.0] * 3, [1.0] * 3])
+    near = [_cube_view(0, 10, (0, 0, 0), 0.1, name="a"), _cube_view(3, 10, (0, 0, 0), 0.1, name="b")]
+    with pytest.raises(ValueError, match="at most 3.0 degrees apart"):
+        compute_edit_box(near, scene_box=scene_box)
+    narrow = [near[0], _cube_view(10, 10, (0, 0, 0), 0.1)]
+    with pytest.warns(UserWarning, match=r"at most 9\.\d degrees apart"):
+        compute_edit_box(narrow, scene_box=scene_box)
+    assert check_view_baselines([near[0], _cube_view(60, 10, (0, 0, 0), 0.1)]) == pytest.approx(59.1, abs=1.0)
 
 
 @pytest.mark.parametrize("resolution, levels", [(16, 1), ([12, 8, 10], 2), (32, 3)])
