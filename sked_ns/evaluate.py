@@ -22,6 +22,7 @@ import numpy as np
 import torch
 
 from sked_ns.base_scene import resolve_base
+from sked_ns.errors import SkedFileNotFoundError, SkedUserError
 from sked_ns import novel_views
 from sked_ns.metrics import intersection_over_sketch, psnr_outside, ssim_outside
 from sked_ns.clip_score import DEFAULT_CLIP, ClipScorer, orbit_cameras
@@ -77,6 +78,14 @@ def _background(model) -> tuple:
     return tuple(float(c) for c in torch.as_tensor(colour).reshape(3))
 
 
+def orbit_count(cameras: str) -> int:
+    """N of --cameras orbit[:N] (12 without it)."""
+    count = cameras.partition(":")[2] or "12"
+    if not (count.isdigit() and int(count) > 0):
+        raise SkedUserError(f"--cameras {cameras}: the orbit's view count must be a whole number >= 1 (e.g. orbit:12).")
+    return int(count)
+
+
 def choose_novel_views(pipeline, cameras: str, target: Optional[Path], resolution: int, max_views: int):
     """The cameras novel views are scored at: --target's, the eval split's, a transforms.json's, or an orbit."""
     model = pipeline.model
@@ -87,7 +96,7 @@ def choose_novel_views(pipeline, cameras: str, target: Optional[Path], resolutio
     elif cameras == "eval":
         views, source = novel_views.eval_split_views(pipeline, resolution, background), "the base dataset's eval split"
     elif cameras.startswith("orbit"):
-        count = int(cameras.partition(":")[2] or 12)
+        count = orbit_count(cameras)
         radius = float(np.mean([np.linalg.norm(v.camera_to_world[:, 3] - model.edit_box.center)
                                 for v in model.sketch_set.views]))
         views, source = novel_views.orbit_views(model.edit_box.center, radius, count, resolution), f"an orbit of {count}"
@@ -169,6 +178,39 @@ def evaluate(edit_run: Path, base_run: Optional[Path] = None, sketches: Optional
     return {"metrics": result, "sheet": torch.cat(rows, dim=0)}
 
 
+def positive_int(text: str) -> int:
+    """argparse type: a whole number >= 1 (a size or a count of views)."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"{value}: must be at least 1")
+    return value
+
+
+def edit_run_folder(config: Path) -> Path:
+    """The run folder of sked-eval's CONFIG argument (a config.yml or its folder), checked up front so a bad
+    path is named as sked-eval takes it (not as ns-train's --load-dir)."""
+    run = config.parent if config.name == "config.yml" else config
+    if not (run / "config.yml").is_file():
+        raise SkedFileNotFoundError(f"sked-eval {config}: no {run / 'config.yml'}. Pass the edited run's config.yml "
+                                    "(outputs/<experiment>/sked/<timestamp>/config.yml) or its run folder.")
+    return run
+
+
+def output_paths(run: Path, output: Optional[Path], sheet: Optional[Path], overwrite: bool) -> tuple[Path, Path]:
+    """Where the metrics JSON and contact sheet go: next to the edit by default; an earlier result is never
+    replaced unless --overwrite says so."""
+    output = output if output is not None else run / "sked_eval.json"
+    sheet = sheet if sheet is not None else output.with_suffix(".png")
+    existing = [str(path) for path in (output, sheet) if path.exists()]
+    if existing and not overwrite:
+        raise SkedUserError(f"sked-eval: {' and '.join(existing)} already exist(s) (an earlier evaluation?). Pass "
+                            "another --output (and --sheet), or --overwrite to replace them.")
+    return output, sheet
+
+
 def entrypoint() -> None:
     from sked_ns.compat import quiet_third_party_warnings
 
@@ -177,33 +219,40 @@ def entrypoint() -> None:
     parser.add_argument("config", type=Path, help="the edited run's config.yml (or its run folder)")
     parser.add_argument("--base", type=Path, default=None, help="base run folder (default: the one the edit used)")
     parser.add_argument("--sketches", type=Path, default=None, help="sketch set (default: the one the edit used)")
-    parser.add_argument("--output", type=Path, default=Path("sked_eval.json"), help="metrics JSON to write")
+    parser.add_argument("--output", type=Path, default=None,
+                        help="metrics JSON to write (default: sked_eval.json in the edit's run folder)")
     parser.add_argument("--sheet", type=Path, default=None, help="contact sheet PNG (default: next to --output)")
-    parser.add_argument("--resolution", type=int, default=256)
+    parser.add_argument("--overwrite", action="store_true", help="replace an earlier --output / --sheet")
+    parser.add_argument("--resolution", type=positive_int, default=256)
     parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
     parser.add_argument("--prompt", default=None, help="prompt for CLIP similarity (default: the edit's)")
     parser.add_argument("--clip-model", default=DEFAULT_CLIP, help="CLIP hub id (cached) or local folder")
-    parser.add_argument("--clip-views", type=int, default=40, help="views around the edit for CLIP similarity")
-    parser.add_argument("--clip-resolution", type=int, default=128, help="render size of those views")
+    parser.add_argument("--clip-views", type=positive_int, default=40, help="views around the edit for CLIP similarity")
+    parser.add_argument("--clip-resolution", type=positive_int, default=128, help="render size of those views")
     parser.add_argument("--cameras", default="eval",
                         help="novel views: 'eval' (the base dataset's eval split), 'orbit[:N]' around the edit box, "
                              "a transforms.json in the base's data frame, or 'none'")
     parser.add_argument("--target", type=Path, default=None,
                         help="ground truth of the intended result (transforms.json + images, the base's data frame): "
                              "scored at its cameras inside and outside the changed region")
-    parser.add_argument("--novel-resolution", type=int, default=256, help="longer side of the novel-view renders")
-    parser.add_argument("--max-novel-views", type=int, default=12, help="at most this many novel views (evenly spread)")
+    parser.add_argument("--novel-resolution", type=positive_int, default=256, help="longer side of the novel-view renders")
+    parser.add_argument("--max-novel-views", type=positive_int, default=12, help="at most this many novel views (evenly spread)")
     args = parser.parse_args()
-    run = args.config.parent if args.config.name == "config.yml" else args.config
+    run = edit_run_folder(args.config)
+    output, sheet = output_paths(run, args.output, args.sheet, args.overwrite)
+    if args.cameras.startswith("orbit"):
+        orbit_count(args.cameras)  # before minutes of rendering
     outcome = evaluate(run, args.base, args.sketches, args.resolution, args.device, args.clip_model, args.prompt,
                        args.clip_views, args.clip_resolution, args.cameras, args.target, args.novel_resolution,
                        args.max_novel_views)
-    args.output.parent.mkdir(parents=True, exist_ok=True)
-    args.output.write_text(json.dumps(outcome["metrics"], indent=2))
-    sheet = args.sheet or args.output.with_suffix(".png")
+    output.parent.mkdir(parents=True, exist_ok=True)
+    output.write_text(json.dumps(outcome["metrics"], indent=2))
+    sheet.parent.mkdir(parents=True, exist_ok=True)
     import cv2
 
-    cv2.imwrite(str(sheet), (outcome["sheet"].numpy().clip(0, 1) * 255).round().astype(np.uint8)[..., ::-1])
+    if not cv2.imwrite(str(sheet), (outcome["sheet"].numpy().clip(0, 1) * 255).round().astype(np.uint8)[..., ::-1]):
+        raise SkedUserError(f"--sheet {sheet}: could not write the contact sheet (OpenCV needs a writable path "
+                            "ending in .png).")
     mean = outcome["metrics"]["mean"]
     print(f"PSNR outside {mean['psnr_outside']:.2f} dB, SSIM outside {mean['ssim_outside']:.3f}, "
           f"IoS {mean['ios']:.3f} (base {mean['ios_base']:.3f}), region IoS {mean.get('ios_region', float('nan')):.3f} "
@@ -211,7 +260,7 @@ def entrypoint() -> None:
           f"CLIP similarity: {outcome['metrics']['clip_similarity']}")
     if "novel_views" in outcome["metrics"]:
         print(novel_summary(outcome["metrics"]["novel_views"]))
-    print(f"wrote {args.output} and {sheet}")
+    print(f"wrote {output} and {sheet}")
 
 
 def novel_summary(novel: Dict) -> str:
