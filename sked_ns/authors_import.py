@@ -19,13 +19,15 @@ import argparse
 import io
 import pickle
 from pathlib import Path
+from typing import List, Optional
 
 import cv2
 import numpy as np
 import torch
 
 from sked_ns.cameras import check_camera_to_world
-from sked_ns.sketches import SketchSet, SketchView, fill_scribbles, save_sketch_set
+from sked_ns.errors import SkedUserError
+from sked_ns.sketches import SKETCHES_JSON, SketchSet, SketchView, fill_scribbles, save_sketch_set
 
 # y-up world (theirs) -> z-up world (nerfstudio's): (x, y, z) -> (x, -z, y).
 Y_UP_TO_Z_UP = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])
@@ -117,11 +119,15 @@ def import_authors_sketches(folder: Path) -> SketchSet:
     return SketchSet(views=views, frame="model")
 
 
-def entrypoint() -> None:
+def entrypoint(argv: Optional[List[str]] = None) -> None:
     """`sked-import-authors <their folder> <our folder>`."""
     parser = argparse.ArgumentParser(description="Convert the SKED authors' sketch layout into a sked_ns sketch set.")
     parser.add_argument("source", type=Path, help="folder with meta_data.pkl and sketches/")
     parser.add_argument("output", type=Path, help="new sketch-set folder (sketches.json + masks/)")
-    args = parser.parse_args()
-    path = save_sketch_set(import_authors_sketches(args.source), args.output)
+    parser.add_argument("--overwrite", action="store_true", help="replace a sketch set already in OUTPUT")
+    args = parser.parse_args(argv)
+    if (args.output / SKETCHES_JSON).exists() and not args.overwrite:  # before reading anything
+        raise SkedUserError(f"sked-import-authors: {args.output / SKETCHES_JSON} already exists. Choose another "
+                            "output folder, or pass --overwrite to replace that sketch set.")
+    path = save_sketch_set(import_authors_sketches(args.source), args.output, overwrite=args.overwrite)
     print(f"wrote {path}")

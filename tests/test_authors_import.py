@@ -69,3 +69,15 @@ def test_bad_folders(tmp_path):
     (tmp_path / "meta_data.pkl").write_bytes(b"garbage")
     with pytest.raises(ValueError, match="meta_data.pkl"):
         import_authors_sketches(tmp_path)
+
+
+def test_the_command_replaces_a_sketch_set_only_with_overwrite(tmp_path, capsys):
+    from sked_ns.authors_import import entrypoint
+    from sked_ns.errors import SkedUserError
+
+    entrypoint([str(CAT), str(tmp_path / "cat")])
+    with pytest.raises(SkedUserError, match=r"cat/sketches.json already exists.*--overwrite") as error:
+        entrypoint([str(CAT), str(tmp_path / "cat")])
+    assert "overwrite=True" not in str(error.value)
+    entrypoint([str(CAT), str(tmp_path / "cat"), "--overwrite"])
+    assert capsys.readouterr().out.count("wrote") == 2 and len(load_sketch_set(tmp_path / "cat").views) == 2
