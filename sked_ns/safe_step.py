@@ -5,7 +5,9 @@ nerfstudio's `Trainer.train_iteration` zeroes gradients, computes the loss, call
 `grad_scaler.update()` and then the schedulers. SKED keeps that iteration as it is (gradient
 accumulation and `--log-gradients` included) and guards two of the objects it calls: the grad
 scaler never backpropagates a non-finite loss nor applies a non-finite gradient, and the
-optimizers' schedulers wait while an update is skipped.
+optimizers' schedulers wait while an update is skipped. A skip is all or nothing: every
+optimizer's gradients are unscaled and checked before any optimizer steps (torch's scaler alone
+skips only the optimizers whose own gradients overflowed, and the others still step).
 """
 
 from __future__ import annotations
@@ -14,6 +16,12 @@ from typing import Callable, Iterable, Optional
 
 import torch
 from torch.nn import Parameter
+
+INITIAL_LOSS_SCALE = 2.0**10
+"""The fp16 loss scale's start (torch's default is 2**16). The SDS gradient per latent, w(t) (eps_hat - eps),
+reaches tens at guidance scale 100 and enters the fp16 VAE encoder's backward times the loss scale: at 2**16 a
+gradient of 1 already overflows fp16 (max 65504) and the first steps are all skipped while the scale halves
+down; 2**10 leaves 64x headroom, and the scaler still doubles it after each 2000 clean steps."""
 
 
 class StepGuard:
@@ -51,9 +59,11 @@ class StepGuard:
 class GuardedGradScaler(torch.amp.GradScaler):
     """nerfstudio's grad scaler, except that a skipped iteration backpropagates and applies nothing."""
 
-    def __init__(self, guard: StepGuard, enabled: bool):
-        super().__init__("cuda", enabled=enabled)
+    def __init__(self, guard: StepGuard, enabled: bool, device: str = "cuda", init_scale: float = INITIAL_LOSS_SCALE):
+        super().__init__(device, init_scale=init_scale, enabled=enabled)
         self.guard = guard
+        self._unscaled: set = set()
+        """Optimizers unscaled since the last update (all are unscaled before any steps: unscale once)."""
 
     def scale(self, outputs):
         if not torch.isfinite(outputs).all():
@@ -63,8 +73,17 @@ class GuardedGradScaler(torch.amp.GradScaler):
         return super().scale(outputs)
 
     def unscale_(self, optimizer) -> None:
-        if not self.guard.skipped:
+        if not self.guard.skipped and id(optimizer) not in self._unscaled:
+            self._unscaled.add(id(optimizer))
             super().unscale_(optimizer)
+
+    def unscale_all(self, optimizers) -> None:
+        """Before any optimizer steps: every gradient unscaled, so an overflow in any one skips them all."""
+        if self.is_enabled():
+            for optimizer in optimizers:
+                if any(p.grad is not None for group in optimizer.param_groups for p in group["params"]):
+                    self.unscale_(optimizer)
+        self.guard.check_gradients()
 
     def step(self, optimizer, *args, **kwargs):
         if not self.is_enabled():  # an enabled scaler skips non-finite gradients itself
@@ -74,8 +93,11 @@ class GuardedGradScaler(torch.amp.GradScaler):
         return super().step(optimizer, *args, **kwargs)
 
     def update(self, new_scale=None) -> None:
-        if not self.guard.skipped:  # nothing was stepped: the scale stays
+        # After an overflow the scale backs off (its inf checks were recorded by unscale_); after a non-finite loss
+        # nothing was unscaled and the scale stays.
+        if self._unscaled or not self.guard.skipped:
             super().update(new_scale)
+        self._unscaled.clear()
 
 
 class GuardedOptimizers:
@@ -87,6 +109,16 @@ class GuardedOptimizers:
 
     def __getattr__(self, name: str):
         return getattr(self._optimizers, name)
+
+    def optimizer_scaler_step_all(self, grad_scaler: GuardedGradScaler) -> None:
+        grad_scaler.unscale_all(self._optimizers.optimizers.values())
+        if not self._guard.skipped:
+            self._optimizers.optimizer_scaler_step_all(grad_scaler)
+
+    def optimizer_scaler_step_some(self, grad_scaler: GuardedGradScaler, param_groups) -> None:
+        grad_scaler.unscale_all(self._optimizers.optimizers[group] for group in param_groups)
+        if not self._guard.skipped:
+            self._optimizers.optimizer_scaler_step_some(grad_scaler, param_groups)
 
     def scheduler_step_all(self, step: int) -> None:
         if not self._guard.skipped:

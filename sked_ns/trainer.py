@@ -90,7 +90,8 @@ class SkedTrainer(Trainer):
         super().__init__(config, local_rank=local_rank, world_size=world_size)
         self.step_guard = StepGuard(lambda: self.pipeline.model.parameters())
         # Before setup, so the pipeline gets it too: never backpropagates or applies a non-finite value.
-        self.grad_scaler = GuardedGradScaler(self.step_guard, enabled=self.grad_scaler.is_enabled())
+        self.grad_scaler = GuardedGradScaler(self.step_guard, enabled=self.grad_scaler.is_enabled(),
+                                             device=self.device.split(":")[0])
 
     def setup(self, test_mode="val") -> None:
         resolve_edit(self.config)
