@@ -20,7 +20,7 @@ from nerfstudio.data.datamanagers.base_datamanager import VanillaDataManager, Va
 from sked_ns.cameras import cameras_of, sketch_view_at
 from sked_ns.edit_box import EditBox
 from sked_ns.random_views import ELEVATION_RANGE_DEG, FOV_RANGE_DEG, RandomViewSampler, focal_from_fov
-from sked_ns.sketches import DataparserTransform, SketchSet, load_sketch_set
+from sked_ns.sketches import SKETCHES_JSON, DataparserTransform, SketchSet, check_declared_frame, load_sketch_set
 
 
 @dataclass
@@ -45,13 +45,22 @@ SKETCH_FRAME = "sked_dataparser_transform"
 """Dataset metadata key: the data -> model frame, which the model reads to load the sketch set."""
 
 
+TRAINING_CAMERAS = "sked_training_cameras"
+"""Dataset metadata key: the training cameras' positions and the scene box centre (model frame), to check the
+sketch set's declared frame against."""
+
+
 def model_frame_sketches(sketches: Optional[Path], metadata: Dict) -> SketchSet:
     """The sketch set in the model's frame; `metadata` is the train dataset's, as nerfstudio hands it to the model."""
     if sketches is None:
         raise ValueError("SKED needs a sketch set: pass --sketches <folder with sketches.json>.")
     if SKETCH_FRAME not in metadata:
         raise ValueError("A SKED model is set up by SkedPipeline with a SkedDataManager (they know the data's frame).")
-    return load_sketch_set(sketches).in_model_frame(metadata[SKETCH_FRAME])
+    sketch_set = load_sketch_set(sketches)
+    if TRAINING_CAMERAS in metadata:
+        check_declared_frame(sketch_set, metadata[SKETCH_FRAME], *metadata[TRAINING_CAMERAS],
+                             Path(sketches) / SKETCHES_JSON)
+    return sketch_set.in_model_frame(metadata[SKETCH_FRAME])
 
 
 class SkedDataManager(VanillaDataManager):
@@ -61,6 +70,9 @@ class SkedDataManager(VanillaDataManager):
         super().__init__(*args, **kwargs)
         # nerfstudio hands the train dataset's metadata to the model: the sketch set needs this frame.
         self.train_dataset.metadata[SKETCH_FRAME] = self.dataparser_transform
+        self.train_dataset.metadata[TRAINING_CAMERAS] = (
+            self.train_dataset.cameras.camera_to_worlds[:, :, 3].numpy().astype(np.float64),
+            self.train_dataparser_outputs.scene_box.get_center().numpy().astype(np.float64))
 
     @property
     def dataparser_transform(self) -> DataparserTransform:

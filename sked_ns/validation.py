@@ -15,6 +15,8 @@ from typing import List, Optional, Sequence
 
 import torch
 
+from sked_ns.errors import SkedUserError
+
 MODEL_FLAGS = "--pipeline.model."
 DATAMANAGER_FLAGS = "--pipeline.datamanager."
 LOSS_WEIGHTS = ("lambda_pres", "lambda_colour", "lambda_sil", "lambda_sp", "lambda_carve", "lambda_photo")
@@ -31,7 +33,7 @@ DEFAULT_SAMPLES_PER_RAY = 400
 """nerfacto's samples per ray (256 + 96 proposal, 48 field) when the model does not say."""
 
 
-class SkedOptionError(ValueError):
+class SkedOptionError(SkedUserError):
     """A setting out of its legal range; the message names the flag as typed and what to pass."""
 
 

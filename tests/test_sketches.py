@@ -2,14 +2,17 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
+from pathlib import Path
 
 import cv2
 import numpy as np
 import pytest
 
 from sked_ns.sketches import (
+    FRAMES,
     DataparserTransform,
     SketchSet,
     SketchView,
@@ -273,3 +276,42 @@ def test_a_mask_that_cannot_be_written_is_an_error(tmp_path, rng):
     (tmp_path / "set" / "masks" / "view_01.png").mkdir(parents=True)  # a folder where the PNG should go
     with pytest.raises(OSError, match=r"view_01.png.*could not write"):
         save_sketch_set(SketchSet(views=[random_view(rng, 8, 8), random_view(rng, 8, 8)]), tmp_path / "set")
+
+
+def _demo_frame():
+    """The demo's training cameras in the model frame, under the transform nerfstudio's dataparser gives it."""
+    from sked_ns.demo import scene
+
+    transform = DataparserTransform(np.concatenate([np.eye(3), [[0.0], [0.0], [-1.08]]], axis=1), 0.431)
+    positions = np.stack([transform.apply(pose)[:, 3] for pose in scene.demo_camera_poses(24)])
+    return transform, positions, np.zeros(3)
+
+
+def test_a_sketch_set_declared_in_the_wrong_frame_is_refused_naming_the_field_and_value(tmp_path):
+    from sked_ns.datamanager import SKETCH_FRAME, TRAINING_CAMERAS, model_frame_sketches
+    from sked_ns.demo import scene
+
+    transform, positions, centre = _demo_frame()
+    demo = scene.demo_sketch_set(size=64)  # data-frame poses
+    save_sketch_set(demo, tmp_path / "right")
+    save_sketch_set(SketchSet(views=demo.views, frame="model"), tmp_path / "wrong")
+    metadata = {SKETCH_FRAME: transform, TRAINING_CAMERAS: (positions, centre)}
+    assert model_frame_sketches(tmp_path / "right", metadata).frame == "model"
+    with pytest.raises(ValueError, match=r'wrong/sketches.json: "frame": "model".*2\.\dx.*Set "frame": "data"'):
+        model_frame_sketches(tmp_path / "wrong", metadata)
+
+
+def test_a_frame_is_not_second_guessed_where_both_readings_fit(rng):
+    from sked_ns.demo import scene
+    from sked_ns.sketches import check_declared_frame
+
+    _, positions, centre = _demo_frame()
+    demo = scene.demo_sketch_set(size=64)
+    unscaled = DataparserTransform(np.eye(4)[:3], 1.0)  # data and model frames alike: nothing to tell apart
+    for frame in FRAMES:
+        check_declared_frame(SketchSet(views=demo.views, frame=frame), unscaled, positions / 0.431, centre, Path("x"))
+    # A model-frame set sketched from 1.7x nearer than the training cameras is legal (close-ups), however it reads.
+    transform, positions, centre = _demo_frame()
+    near = [dataclasses.replace(v, camera_to_world=np.concatenate([v.camera_to_world[:, :3], 0.6 * transform.apply(
+        v.camera_to_world)[:, 3:]], axis=1)) for v in demo.views]
+    check_declared_frame(SketchSet(views=near, frame="model"), transform, positions, centre, Path("x"))
