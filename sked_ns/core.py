@@ -34,7 +34,8 @@ from sked_ns.edit_box import EditBox, compute_edit_box
 from sked_ns.frozen_base import FrozenBase
 from sked_ns.guidance import Guidance, GuidanceChoice, RenderedView, StableDiffusionGuidanceConfig
 from sked_ns.losses import occupancy_log_probabilities, preservation_loss, silhouette_loss, sparsity_loss
-from sked_ns.photo_anchor import anchor_rays, correct_poses, editable_box, rays_away_from_edit
+from sked_ns.photo_anchor import (anchor_rays, check_base_explains_photos, correct_poses, editable_box,
+                                  rays_away_from_edit)
 from sked_ns.preservation import SketchDistanceField, check_beta
 from sked_ns.sketches import SketchSet
 from sked_ns.validation import check_sketch_pixels
@@ -361,6 +362,10 @@ class SkedMixin:
             self.field.train(was_training)
 
     # ---- the base-photo anchor --------------------------------------------------------------
+    _photos_checked: bool = False
+    base_photo_psnr: Optional[float] = None
+    """The base's PSNR at the first batch of anchored photo rays (check_base_explains_photos)."""
+
     def editable_box(self) -> Optional[Tensor]:
         """The box holding every point with w <= photo_threshold (follows beta, which the viewer may change)."""
         key = (self.config.beta, self.config.photo_threshold)
@@ -390,6 +395,10 @@ class SkedMixin:
         outputs = self._render(rays)[0]
         predicted, truth = self.renderer_rgb.blend_background_for_loss_computation(
             pred_image=outputs["rgb"], pred_accumulation=outputs["accumulation"], gt_image=rgb.to(outputs["rgb"]))
+        if not self._photos_checked:
+            # Once, on the first batch (the edit is still the base there, or holds it at these rays when resumed).
+            self.base_photo_psnr = check_base_explains_photos(predicted, truth)
+            self._photos_checked = True
         return torch.nn.functional.mse_loss(predicted.float(), truth.float()), outputs, safe.float().mean()
 
     def get_sked_loss_dict(

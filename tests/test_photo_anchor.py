@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import pytest
 import torch
 from nerfstudio.cameras.camera_optimizers import CameraOptimizerConfig
 from nerfstudio.cameras.rays import RayBundle
@@ -48,3 +49,17 @@ def test_pose_corrections_match_nerfstudio():
         correct_poses(rays, [optimizer])
     torch.testing.assert_close(rays.origins, expected.origins)
     torch.testing.assert_close(rays.directions, expected.directions)
+
+
+def test_photos_the_base_does_not_explain_are_refused_naming_data_and_lambda_photo():
+    from sked_ns.errors import SkedUserError
+    from sked_ns.photo_anchor import check_base_explains_photos
+
+    generator = torch.Generator().manual_seed(0)
+    photos = torch.rand(400, 3, generator=generator)
+    noise = lambda sigma: (photos + sigma * torch.randn(400, 3, generator=generator)).clamp(0, 1)  # noqa: E731
+    assert check_base_explains_photos(noise(0.02), photos) > 30  # a trained base: no word
+    with pytest.warns(UserWarning, match="only 1[5-9].\\d dB"):
+        check_base_explains_photos(noise(0.15), photos)
+    with pytest.raises(SkedUserError, match=r"--data: .* \d.\d dB.*--pipeline.model.lambda-photo 0"):
+        check_base_explains_photos(torch.rand(400, 3, generator=generator), photos)  # other photos
