@@ -23,7 +23,7 @@ import numpy as np
 import torch
 
 from sked_ns.sketching import PinholeCamera, SketchSession, import_canvases, write_canvases
-from sked_ns.sketches import DataparserTransform
+from sked_ns.sketches import SKETCHES_JSON, DataparserTransform
 
 VIEW_WIDTH = 512
 """Width of a captured view; the height follows the browser window's aspect."""
@@ -291,6 +291,21 @@ def training_cameras(pipeline, indices: List[int]) -> List[PinholeCamera]:
     return [PinholeCamera.from_nerfstudio(cameras[index : index + 1]) for index in indices]
 
 
+def port_number(text: str) -> int:
+    """argparse type: a TCP port."""
+    if not (text.isdigit() and 1 <= int(text) <= 65535):
+        raise argparse.ArgumentTypeError(f"{text!r} is not a port number (1-65535)")
+    return int(text)
+
+
+def new_sketch_folder(out: Path, command: str) -> Path:
+    """--out must not hold a sketch set yet: refused before anything is loaded or painted, never replaced."""
+    if (out / SKETCHES_JSON).exists():
+        raise SystemExit(f"{command}: --out {out} already holds a sketch set ({out / SKETCHES_JSON}); choose a new "
+                         "folder (an existing sketch set is never overwritten).")
+    return out
+
+
 def entrypoint(argv: Optional[List[str]] = None) -> None:
     argv = sys.argv[1:] if argv is None else argv
     device = "cuda" if torch.cuda.is_available() else "cpu"
@@ -311,6 +326,7 @@ def entrypoint(argv: Optional[List[str]] = None) -> None:
         parser.add_argument("folder", type=Path)
         parser.add_argument("--out", type=Path, required=True)
         args = parser.parse_args(argv[1:])
+        new_sketch_folder(args.out, "sked-sketch import")
         try:
             print(f"wrote {import_canvases(args.folder, args.out)}")
         except (ValueError, FileNotFoundError, FileExistsError) as error:
@@ -320,8 +336,9 @@ def entrypoint(argv: Optional[List[str]] = None) -> None:
                                      epilog="Subcommands: `canvases` and `import` (headless).")
     parser.add_argument("base", type=Path, help="base run folder or its config.yml")
     parser.add_argument("--out", type=Path, required=True, help="folder to save the sketch set into (must be new)")
-    parser.add_argument("--port", type=int, default=None)
+    parser.add_argument("--port", type=port_number, default=None)
     args = parser.parse_args(argv)
+    new_sketch_folder(args.out, "sked-sketch")
     viewer, _ = start_viewer(args.base, args.out, args.port, device)
     print(f"SKED sketching: open {viewer.viewer_info[0] if viewer.viewer_info else 'the viewer'} in a browser.")
     try:

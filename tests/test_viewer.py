@@ -173,3 +173,17 @@ def test_capture_pressed_again_while_rendering_is_ignored(sketch_viewer):
     with panel._capturing:  # a capture in progress
         panel._guarded(panel.capture)
     assert "Still rendering" in panel.last_message and panel.session.pending is pending
+
+
+def test_sked_sketch_refuses_an_existing_set_and_a_bad_port_before_loading_anything(tmp_path, capsys):
+    from sked_ns.sketch_viewer import entrypoint
+
+    (tmp_path / "done").mkdir()
+    (tmp_path / "done" / "sketches.json").write_text("{}")
+    for argv in (["no-base", "--out", str(tmp_path / "done")], ["import", "no-canvases", "--out", str(tmp_path / "done")]):
+        with pytest.raises(SystemExit, match=r"--out .*done already holds a sketch set"):
+            entrypoint(argv)
+    assert (tmp_path / "done" / "sketches.json").read_text() == "{}"
+    with pytest.raises(SystemExit):
+        entrypoint(["no-base", "--out", str(tmp_path / "new"), "--port", "70000"])
+    assert "not a port number" in capsys.readouterr().err
