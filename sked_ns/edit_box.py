@@ -19,6 +19,7 @@ from scipy.optimize import linprog
 from torch import Tensor
 
 from sked_ns.cameras import pixel_directions
+from sked_ns.errors import SkedUserError
 from sked_ns.sketches import SketchView
 
 # Frusta start this far in front of each camera (scene units).
@@ -115,7 +116,7 @@ def check_view_baselines(views: Sequence[SketchView]) -> float:
               for i, j in combinations(range(len(views)), 2)}
     same = [f"{name(i)} and {name(j)}" for (i, j), angle in angles.items() if angle < SAME_VIEW_DEG]
     if same:
-        raise ValueError(f"The same sketch view twice ({'; '.join(same)}: their rays to the sketch are under "
+        raise SkedUserError(f"The same sketch view twice ({'; '.join(same)}: their rays to the sketch are under "
                          f"{SAME_VIEW_DEG:g} degree apart), which cannot place the edit in depth. Remove the copy and "
                          f"sketch the region from a second viewpoint at least {WIDE_BASELINE_DEG:g} degrees away.")
     widest = max(angles.values())
@@ -123,7 +124,7 @@ def check_view_baselines(views: Sequence[SketchView]) -> float:
                "they look along nearly the same line, so the edit's depth is barely bounded and the edit box stretches "
                f"towards the scene's bounds. Sketch from viewpoints at least {WIDE_BASELINE_DEG:g} degrees apart.")
     if widest < MIN_BASELINE_DEG:
-        raise ValueError(message)
+        raise SkedUserError(message)
     if widest < WIDE_BASELINE_DEG:
         warnings.warn(message, UserWarning, stacklevel=3)
     return widest

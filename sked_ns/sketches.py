@@ -36,6 +36,7 @@ import numpy as np
 import torch
 
 from sked_ns.cameras import check_camera_to_world, distort
+from sked_ns.errors import SkedUserError
 
 SKETCHES_JSON = "sketches.json"
 FRAMES = ("data", "model")
@@ -190,7 +191,7 @@ def check_declared_frame(sketch_set: SketchSet, transform: DataparserTransform, 
     as_other = replace(sketch_set, frame=other).in_model_frame(transform)
     declared, alternative = (frame_misfit(s, training_positions, centre) for s in (as_declared, as_other))
     if declared > FRAME_MISFIT and alternative < FRAME_FIT:
-        raise ValueError(
+        raise SkedUserError(
             f"{json_path}: \"frame\": \"{sketch_set.frame}\", but read so its cameras are up to "
             f"{math.exp(declared):.1f}x nearer or farther from the scene than the base's training cameras; read as "
             f"\"{other}\" they are within {math.exp(alternative):.2f}x. Set \"frame\": \"{other}\" in {json_path.name} "
