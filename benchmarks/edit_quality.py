@@ -101,8 +101,9 @@ def edit(base: Path, paths: Dict[str, Path], scene: str, protocol: Dict, output:
 
 
 def score(edit_run: Path, paths: Dict[str, Path], output: Path, log: Path) -> Dict:
-    run([sys.executable, "-m", "sked_ns.evaluate", str(edit_run), "--output", str(output), "--resolution", "64",
-         "--target", str(paths["target"]), "--novel-resolution", "96"], log)
+    # A rerun of a tag replaces its evaluation (sked-eval never does unasked).
+    run([sys.executable, "-m", "sked_ns.evaluate", str(edit_run), "--output", str(output), "--overwrite",
+         "--resolution", "64", "--target", str(paths["target"]), "--novel-resolution", "96"], log)
     return json.loads(output.read_text())
 
 
