@@ -150,6 +150,11 @@ def warn_unusual_options(options, memory: Optional[int] = None) -> List[str]:
     elif resolution < SMALL_GUIDANCE_RESOLUTION:
         messages.append(f"{flag('guidance_resolution')} {resolution}: a {resolution}x{resolution} view shows the "
                         "guidance almost no shape (the paper uses 128).")
+    if not 0.25 <= options.samples_per_ray_scale <= 8:
+        messages.append(f"{flag('samples_per_ray_scale')} {options.samples_per_ray_scale:g}: "
+                        + ("under a quarter of the samples the base was trained with: thin parts and the new content "
+                           "fall between samples." if options.samples_per_ray_scale < 0.25 else
+                           "over 8x the base's samples per ray: each step costs as much more, for little gain."))
     if options.lambda_photo > 0 and options.photo_threshold >= 1:
         messages.append(f"{flag('photo_threshold')} 1: no photo ray has every weight above 1, so the photo anchor "
                         "never acts; use --pipeline.model.lambda-photo 0 to turn it off, or 0.99.")

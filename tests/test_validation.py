@@ -74,6 +74,12 @@ def test_a_guidance_render_that_cannot_fit_is_refused_and_a_large_one_warned():
         warn_unusual_options(SkedNerfactoModelConfig(guidance_resolution=1024), memory=2**50)
 
 
+@pytest.mark.parametrize("scale", [0.01, 20.0])
+def test_samples_per_ray_far_from_the_base_are_warned(scale):
+    with pytest.warns(SkedOptionWarning, match=f"samples-per-ray-scale {scale:g}: "):
+        check_options(SkedNerfactoModelConfig(samples_per_ray_scale=scale))
+
+
 def test_a_photo_threshold_that_silences_the_anchor_is_warned():
     with pytest.warns(SkedOptionWarning, match="photo-threshold 1: .*never acts"):
         check_options(SkedNerfactoModelConfig(photo_threshold=1.0))
