@@ -168,7 +168,8 @@ def warn_unusual_options(options, memory: Optional[int] = None) -> List[str]:
 
 def check_options(options, datamanager=None) -> None:
     """Refuse out-of-range SKED settings (model config, and the SKED datamanager's if given); warn on odd ones."""
-    refuse(option_problems(options) + (datamanager_problems(datamanager) if datamanager is not None else []))
+    sked_datamanager = hasattr(datamanager, "fov_range")  # nerfstudio's own datamanagers have no random views
+    refuse(option_problems(options) + (datamanager_problems(datamanager) if sked_datamanager else []))
     warn_unusual_options(options)
 
 
