@@ -60,32 +60,49 @@ class PortableOccGridEstimator(nerfacc.OccGridEstimator):
         return ray_indices, t_starts, t_ends
 
 
+NERFACC_EPS = 1e-6
+"""nerfacc's traversal starts each grid segment at t_min + eps, so its cell exits fall eps early."""
+
+
+def calc_dt(t: Tensor, step: float, cone_angle: float) -> Tensor:
+    """nerfacc's `_calc_dt`: the step at distance t, clamp(t cone_angle, step, 1e10)."""
+    return (t * cone_angle).clamp(min=step, max=1e10)
+
+
 def step_starts(t0: Tensor, count: int, step: float, cone_angle: float) -> Tensor:
-    """t_k for k = 0..count per ray: t_{k+1} = t_k + max(step, cone_angle t_k) (nerfacc's calc_dt)."""
+    """t_k for k = 0..count per ray, stepping t_{k+1} = t_k + calc_dt(t_k)."""
     k = torch.arange(count + 1, device=t0.device, dtype=t0.dtype)
-    linear = t0[:, None] + k * step
+    return t_after(t0[:, None], k, step, cone_angle)
+
+
+def t_after(t0: Tensor, k: Tensor, step: float, cone_angle: float) -> Tensor:
+    """t_k after k steps from t0 (broadcast): linear until cone_angle t reaches the step, geometric after."""
+    linear = t0 + k * step
     if cone_angle <= 0:
         return linear
-    # Linear until cone_angle t reaches the step, geometric after.
-    switch = step / cone_angle
-    k_switch = torch.ceil(((switch - t0) / step).clamp_min(0))
+    k_switch = torch.ceil(((step / cone_angle - t0) / step).clamp_min(0))
     t_switch = t0 + k_switch * step
-    geometric = t_switch[:, None] * (1 + cone_angle) ** (k - k_switch[:, None]).clamp_min(0)
-    return torch.where(k < k_switch[:, None], linear, geometric)
+    return torch.where(k < k_switch, linear, t_switch * (1 + cone_angle) ** (k - k_switch).clamp_min(0))
 
 
-def steps_needed(t0: Tensor, t1: Tensor, step: float, cone_angle: float) -> Tensor:
-    """Number of steps from t0 past t1 (inverse of `step_starts`)."""
-    span = (t1 - t0).clamp_min(0)
+def steps_before(t0: Tensor, t_exit: Tensor, step: float, cone_angle: float) -> Tensor:
+    """How many steps from t0 have their midpoint before t_exit (nerfacc's walk through an occupied cell)."""
+    linear = torch.ceil((t_exit - t0) / step - 0.5).clamp_min(0)
     if cone_angle <= 0:
-        return torch.ceil(span / step)
-    switch = step / cone_angle
-    k_switch = torch.ceil(((switch - t0) / step).clamp_min(0))
+        return linear
+    k_switch = torch.ceil(((step / cone_angle - t0) / step).clamp_min(0))
     t_switch = t0 + k_switch * step
-    linear = torch.ceil(span / step)
-    geometric = k_switch + torch.ceil(torch.log(t1.clamp_min(1e-12) / t_switch.clamp_min(1e-12)).clamp_min(0)
-                                      / math.log1p(cone_angle))
-    return torch.where(t1 <= t_switch, linear, geometric)
+    # Past the switch each midpoint is t_k (1 + cone_angle / 2).
+    geometric = k_switch + torch.ceil(
+        torch.log((t_exit / (1 + cone_angle / 2)).clamp_min(1e-30) / t_switch.clamp_min(1e-30)) / math.log1p(cone_angle)
+    ).clamp_min(0)
+    return torch.where(linear <= k_switch, linear, geometric)
+
+
+def skip_to(t: Tensor, t_exit: Tensor, step: float, cone_angle: float) -> Tensor:
+    """nerfacc's walk through empty space: a fixed step, taken from t, until a midpoint passes t_exit."""
+    dt = calc_dt(t, step, cone_angle)
+    return t + torch.ceil((t_exit - t) / dt - 0.5).clamp_min(0) * dt
 
 
 def ray_aabb(rays_o: Tensor, rays_d: Tensor, aabb: Tensor) -> Tuple[Tensor, Tensor]:
@@ -111,36 +128,118 @@ def occupied(binaries: Tensor, aabbs: Tensor, points: Tensor) -> Tensor:
     return result
 
 
+def level_segments(rays_o: Tensor, rays_d: Tensor, aabbs: Tensor, nears: Tensor, fars: Tensor):
+    """nerfacc's order of traversal: per ray, the stretches between its sorted box crossings, each
+    with the finest level holding it, clipped to [near, far]. Returns (level, t_min, t_max, valid), [rays, 2L-1]."""
+    n_levels = len(aabbs)
+    entries, exits = zip(*(ray_aabb(rays_o, rays_d, aabb) for aabb in aabbs))
+    entry, exit_ = torch.stack(entries, -1), torch.stack(exits, -1)
+    hits = (entry <= exit_) & (exit_ > 0)
+    inf = torch.full_like(entry, math.inf)
+    t_sorted, order = torch.sort(torch.cat([torch.where(hits, entry, inf), torch.where(hits, exit_, inf)], -1), -1)
+    here, after = order[:, :-1], order[:, 1:]
+    hit_here, hit_after = hits.gather(1, here % n_levels), hits.gather(1, after % n_levels)
+    entering, next_entering = here < n_levels, after < n_levels
+    # Entering level l: the stretch is l's; leaving it: the stretch belongs to the next box we leave.
+    level = torch.where(entering, here % n_levels, after % n_levels)
+    valid = hit_here & (entering | (~next_entering & hit_after))
+    t_min = torch.maximum(t_sorted[:, :-1], nears[:, None])
+    t_max = torch.minimum(t_sorted[:, 1:], fars[:, None])
+    return level, t_min, t_max, valid & (t_min < t_max)
+
+
+START, CROSS, END = 0, 1, 2
+"""Kinds of traversal events: a stretch starts, the ray crosses a cell wall, a stretch ends."""
+
+
+def traversal_events(binaries: Tensor, aabbs: Tensor, rays_o: Tensor, rays_d: Tensor, nears: Tensor,
+                     fars: Tensor) -> Tuple[Tensor, Tensor, Tensor]:
+    """Per ray, sorted: event distances, kinds, and whether the cell from each event to the next is on."""
+    resolution = torch.tensor(binaries.shape[1:], device=rays_o.device)
+    level, t_min, t_max, valid = level_segments(rays_o, rays_d, aabbs, nears, fars)
+    low, high = aabbs[level][..., :3], aabbs[level][..., 3:]  # [rays, stretches, 3]
+    size = (high - low) / resolution
+    # Cell walls strictly inside each stretch, per axis: indices m of planes low + m size.
+    u0 = (rays_o[:, None] + rays_d[:, None] * torch.where(valid, t_min, 0)[..., None] - low) / size
+    u1 = (rays_o[:, None] + rays_d[:, None] * torch.where(valid, t_max, 0)[..., None] - low) / size
+    first = torch.floor(torch.minimum(u0, u1)) + 1
+    count = torch.where(valid[..., None], torch.ceil(torch.maximum(u0, u1)) - first, 0).clamp_min(0)
+    width = int(count.max()) if count.numel() else 0
+    m = first[..., None] + torch.arange(width, device=rays_o.device, dtype=rays_o.dtype)
+    walls = (low[..., None] + m * size[..., None] - rays_o[:, None, :, None]) / rays_d[:, None, :, None]
+    walls = (walls - NERFACC_EPS).clamp(t_min[..., None, None], t_max[..., None, None])
+    walls = torch.where(torch.arange(width, device=rays_o.device) < count[..., None], walls, math.inf)
+    n_rays, n_stretches = level.shape
+    inf = torch.full_like(t_min, math.inf)
+    times = torch.cat([torch.where(valid, t_min, inf)[..., None], walls.reshape(n_rays, n_stretches, -1),
+                       torch.where(valid, t_max, inf)[..., None]], -1)
+    kinds = torch.full(times.shape, CROSS, device=rays_o.device)
+    kinds[..., 0], kinds[..., -1] = START, END
+    levels = level[..., None].expand(times.shape)
+    # Stretches follow each other along the ray: a stable sort keeps one's END before the next's START.
+    times, order = torch.sort(times.reshape(n_rays, -1), stable=True, dim=-1)
+    events = max(int(torch.isfinite(times).sum(1).max()), 1) if n_rays else 1  # the rest is padding
+    times, order = times[:, :events], order[:, :events]
+    kinds, levels = kinds.reshape(n_rays, -1).gather(1, order), levels.reshape(n_rays, -1).gather(1, order)
+    # The cell between two events: looked up at its midpoint, in its stretch's level.
+    mids = (times[:, :-1] + times[:, 1:]) / 2
+    points = rays_o[:, None] + rays_d[:, None] * torch.nan_to_num(mids, posinf=0.0)[..., None]
+    box = aabbs[levels[:, :-1]]
+    cell = ((points - box[..., :3]) / (box[..., 3:] - box[..., :3]) * resolution).floor().long()
+    cell = cell.clamp(torch.zeros_like(resolution), resolution - 1)
+    on = binaries[levels[:, :-1], cell[..., 0], cell[..., 1], cell[..., 2]]
+    return times, kinds, on
+
+
 def march_grid(binaries: Tensor, aabbs: Tensor, rays_o: Tensor, rays_d: Tensor, nears: Tensor, fars: Tensor,
                step: float, cone_angle: float = 0.0) -> Tuple[Tensor, Tensor, Tensor]:
-    """Packed samples (ray_indices, t_starts, t_ends), sorted by ray then distance."""
-    entry, exit_ = ray_aabb(rays_o, rays_d, aabbs[-1])
-    t0 = torch.maximum(nears, entry.clamp_min(0))
-    t1 = torch.minimum(fars, exit_)
-    counts = torch.where(t1 > t0, steps_needed(t0, t1, step, cone_angle), torch.zeros_like(t0)).long()
+    """Packed samples (ray_indices, t_starts, t_ends), sorted by ray then distance, as nerfacc's
+    `traverse_grids` makes them: steps from the near plane, of calc_dt(t) through occupied cells
+    and of a fixed calc_dt (taken on entering) through empty ones; kept where the midpoint is in an
+    occupied cell."""
     out_rays, out_starts, out_ends = [], [], []
-    rays = torch.arange(len(rays_o), device=rays_o.device)
-    begin = 0
-    while begin < len(rays_o):
-        # Take as many rays as fit the candidate budget (at least one).
-        widest = counts[begin:].cummax(0).values
-        fit = int(((torch.arange(1, len(widest) + 1, device=widest.device) * widest) <= MAX_CANDIDATES).sum())
-        end = begin + max(fit, 1)
-        width = int(counts[begin:end].max()) if end > begin else 0
-        if width > 0:
-            t = step_starts(t0[begin:end], width, step, cone_angle)
-            starts, ends = t[:, :-1], t[:, 1:]
-            valid = (torch.arange(width, device=t.device) < counts[begin:end, None]) & (starts < t1[begin:end, None])
-            mids = rays_o[begin:end, None] + rays_d[begin:end, None] * ((starts + ends) / 2)[..., None]
-            keep = valid & occupied(binaries, aabbs, mids)
-            out_rays.append(rays[begin:end, None].expand_as(keep)[keep])
-            out_starts.append(starts[keep])
-            out_ends.append(ends[keep])
-        begin = end
+    # Rays in chunks: the events of a chunk are [rays, (2 levels - 1) (3 resolution + 2)].
+    per_ray = (2 * len(aabbs) - 1) * (int(sum(binaries.shape[1:])) + 2)
+    chunk = max(1, MAX_CANDIDATES // per_ray)
+    for begin in range(0, len(rays_o), chunk):
+        rays = slice(begin, begin + chunk)
+        ray_ids, starts, ends = _march_chunk(binaries, aabbs, rays_o[rays], rays_d[rays], nears[rays], fars[rays],
+                                             step, cone_angle)
+        out_rays.append(ray_ids + begin)
+        out_starts.append(starts)
+        out_ends.append(ends)
     if not out_rays:
         empty = rays_o.new_zeros(0)
         return empty.long(), empty, empty
     return torch.cat(out_rays), torch.cat(out_starts), torch.cat(out_ends)
+
+
+def _march_chunk(binaries, aabbs, rays_o, rays_d, nears, fars, step, cone_angle):
+    times, kinds, on = traversal_events(binaries, aabbs, rays_o, rays_d, nears, fars)
+    n_rays, n_cells = on.shape
+    t_last = nears.clone()
+    continuous = torch.zeros(n_rays, dtype=torch.bool, device=rays_o.device)
+    first_t = torch.zeros_like(on, dtype=times.dtype)
+    counts = torch.zeros_like(on, dtype=times.dtype)
+    for j in range(n_cells):  # one cell per ray at a time: each cell's steps depend on where the last ended
+        cell = (kinds[:, j] != END) & torch.isfinite(times[:, j + 1])
+        t_exit = times[:, j + 1]
+        # A new stretch after empty space: walk from t_last to its start.
+        walk = cell & (kinds[:, j] == START) & ~continuous
+        t_last = torch.where(walk, skip_to(t_last, times[:, j], step, cone_angle), t_last)
+        empty, full = cell & ~on[:, j], cell & on[:, j]
+        t_last = torch.where(empty, skip_to(t_last, t_exit, step, cone_angle), t_last)
+        count = torch.where(full, steps_before(t_last, t_exit, step, cone_angle), torch.zeros_like(t_last))
+        first_t[:, j], counts[:, j] = t_last, count
+        t_last = torch.where(count > 0, t_after(t_last, count, step, cone_angle), t_last)
+        continuous = (continuous & ~empty) | (count > 0)
+    keep = counts > 0
+    ray_ids = torch.arange(n_rays, device=rays_o.device)[:, None].expand_as(keep)[keep]
+    first_t, counts = first_t[keep], counts[keep].long()
+    width = int(counts.max()) if len(counts) else 0
+    t = step_starts(first_t, width, step, cone_angle)
+    valid = torch.arange(width, device=t.device) < counts[:, None]
+    return ray_ids[:, None].expand_as(valid)[valid], t[:, :-1][valid], t[:, 1:][valid]
 
 
 def _padded_index(ray_indices: Tensor, n_rays: int) -> Tuple[Tensor, int]:
@@ -174,3 +273,33 @@ def render_weights(t_starts: Tensor, t_ends: Tensor, sigmas: Tensor, ray_indices
     optical_depth = sigmas * (t_ends - t_starts)
     alphas = -torch.expm1(-optical_depth)
     return packed_exclusive_transmittance(optical_depth, ray_indices, n_rays) * alphas
+
+
+def sample_agreement(reference: Tuple[Tensor, Tensor, Tensor], other: Tuple[Tensor, Tensor, Tensor],
+                     rtol: float = 1e-4) -> dict:
+    """How far two marchers' packed samples (ray_indices, t_starts, t_ends) agree, sample by sample.
+
+    A sample is matched when the other set has one on the same ray whose start and end are both
+    within rtol * t (float32 kernels drift by a few ulps per step); counts alone would hide shifts.
+    """
+    def matched(a, b) -> Tuple[Tensor, Tensor]:
+        rays_a, starts_a, ends_a = (x.double().cpu() for x in a)
+        rays_b, starts_b, ends_b = (x.double().cpu() for x in b)
+        if len(starts_b) == 0:
+            return torch.zeros(len(starts_a), dtype=torch.bool), torch.full((len(starts_a),), math.inf)
+        span = float(torch.cat([starts_a, starts_b]).abs().max()) * 4 + 1
+        key_a, key_b = rays_a * span + starts_a, rays_b * span + starts_b  # sorted by ray, then start
+        index = torch.searchsorted(key_b, key_a).clamp(1, len(key_b) - 1)
+        best = torch.full((len(starts_a),), math.inf, dtype=torch.float64)
+        for candidate in (index - 1, index, (index + 1).clamp_max(len(key_b) - 1)):
+            gap = torch.maximum((starts_b[candidate] - starts_a).abs(), (ends_b[candidate] - ends_a).abs())
+            best = torch.where(rays_b[candidate] == rays_a, torch.minimum(best, gap), best)
+        return best <= rtol * ends_a.abs() + 1e-7, best
+
+    ours, gap = matched(reference, other)
+    theirs, _ = matched(other, reference)
+    return {
+        "matched_reference": float(ours.float().mean()) if len(ours) else 1.0,
+        "matched_other": float(theirs.float().mean()) if len(theirs) else 1.0,
+        "max_matched_difference": float(gap[ours].max()) if ours.any() else 0.0,
+    }

@@ -8,7 +8,9 @@ import numpy as np
 import pytest
 import torch
 
-from sked_ns.occupancy import PortableOccGridEstimator, march_grid, packed_exclusive_transmittance, render_weights
+from sked_ns.occupancy import (
+    PortableOccGridEstimator, march_grid, packed_exclusive_transmittance, render_weights, sample_agreement,
+)
 
 
 def _grid(rng: np.random.Generator, resolution=(6, 5, 4), levels=2, fill=0.3) -> PortableOccGridEstimator:
@@ -17,40 +19,83 @@ def _grid(rng: np.random.Generator, resolution=(6, 5, 4), levels=2, fill=0.3) ->
     return grid
 
 
-def _cell_on(grid, point: np.ndarray) -> bool:
-    """nerfacc's rule, one point at a time: the finest level whose box holds the point."""
-    for level, box in enumerate(grid.aabbs.numpy().astype(np.float64)):
-        unit = (point - box[:3]) / (box[3:] - box[:3])
-        if np.all(unit >= 0) and np.all(unit < 1):
-            cell = np.minimum((unit * grid.resolution.numpy()).astype(int), grid.resolution.numpy() - 1)
-            return bool(grid.binaries[level][tuple(cell)])
-    return False
+def _nerfacc_walk(grid, origin, direction, near, far, step, cone_angle, eps=1e-6):
+    """nerfacc 0.5.2's traverse_grids_kernel (cuda/csrc/grid.cu) for one ray, transcribed line by line."""
+    aabbs, res, binaries = grid.aabbs.numpy().astype(np.float64), grid.resolution.numpy(), grid.binaries.numpy()
+    n_levels = len(aabbs)
 
+    def calc_dt(t):
+        return min(max(t * cone_angle, step), 1e10)
 
-def _reference_march(grid, origin, direction, near, far, step, cone_angle):
-    """Walk one ray: t += max(step, cone_angle t); keep steps whose midpoint's cell is on."""
-    box = grid.aabbs[-1].numpy().astype(np.float64)
-    with np.errstate(divide="ignore"):
-        t_a, t_b = (box[:3] - origin) / direction, (box[3:] - origin) / direction
-    t0, t1 = max(near, max(np.minimum(t_a, t_b).max(), 0.0)), min(far, np.maximum(t_a, t_b).min())
-    samples, t = [], t0
-    while t < t1:
-        t_next = t + max(step, cone_angle * t)
-        if _cell_on(grid, origin + direction * (t + t_next) / 2):
-            samples.append((t, t_next))
-        t = t_next
+    inverse = 1.0 / direction
+    t_mins, t_maxs, hits = [], [], []
+    for box in aabbs:  # ray_aabb_intersect (near -inf, far inf, misses at inf)
+        t_a, t_b = (box[:3] - origin) * inverse, (box[3:] - origin) * inverse
+        low, high = np.minimum(t_a, t_b).max(), np.maximum(t_a, t_b).min()
+        hit = low <= high and high > 0
+        t_mins.append(low if hit else np.inf)
+        t_maxs.append(high if hit else np.inf)
+        hits.append(hit)
+    order = np.argsort(t_mins + t_maxs, kind="stable")
+    t_sorted = np.array(t_mins + t_maxs)[order]
+    samples, t_last, continuous = [], near, False
+    for i in range(2 * n_levels - 1):
+        level = order[i] % n_levels
+        if not hits[level]:
+            continue
+        if order[i] >= n_levels:  # leaving a box: the stretch is the next box's, if we are inside it
+            if order[i + 1] < n_levels or not hits[order[i + 1] % n_levels]:
+                continue
+            level = order[i + 1] % n_levels
+        t_min, t_max = max(t_sorted[i], near), min(t_sorted[i + 1], far)
+        if t_min >= t_max:
+            continue
+        if not continuous:
+            dt = calc_dt(t_last)
+            while t_last + dt * 0.5 < t_min:
+                t_last += dt
+        box = aabbs[level]
+        voxel = (box[3:] - box[:3]) / res
+        start, end = origin + direction * (t_min + eps), origin + direction * (t_max - eps)
+        current = np.clip(((start - box[:3]) / (box[3:] - box[:3]) * res).astype(int), 0, res - 1)
+        final = np.clip(((end - box[:3]) / (box[3:] - box[:3]) * res).astype(int), 0, res - 1)
+        step_index = np.sign(direction).astype(int)
+        tdist = (box[:3] + (current + (direction > 0)) * voxel - start) * inverse + t_min
+        delta = voxel * inverse * step_index
+        overflow = final + step_index
+        for _ in range(10_000):
+            t_traverse = min(tdist.min(), t_max)
+            if not binaries[level][tuple(current)]:
+                dt = calc_dt(t_last)
+                while t_last + dt * 0.5 < t_traverse:
+                    t_last += dt
+                continuous = False
+            else:
+                while True:
+                    dt = calc_dt(t_last)
+                    if t_last + dt * 0.5 >= t_traverse:
+                        break
+                    samples.append((t_last, t_last + dt))
+                    continuous, t_last = True, t_last + dt
+                    if t_last >= t_traverse:
+                        break
+            axis = 0 if tdist[0] < tdist[1] and tdist[0] < tdist[2] else (1 if tdist[1] < tdist[2] else 2)
+            current[axis] += step_index[axis]
+            tdist[axis] += delta[axis]
+            if current[axis] == overflow[axis]:
+                break
     return samples
 
 
-@pytest.mark.parametrize("cone_angle", [0.0, 0.05])
-def test_march_grid_matches_a_per_ray_walk(rng, cone_angle):
+@pytest.mark.parametrize("step, cone_angle", [(0.07, 0.0), (0.005, 0.004), (0.02, 0.05)])
+def test_march_grid_steps_as_nerfacc(rng, step, cone_angle):
+    """Same samples as nerfacc's kernel: from the near plane (not the box), cone-angle steps, fixed steps over empty cells."""
     grid = _grid(rng)
     n = 40
     origins = rng.uniform(-3, 3, size=(n, 3))
     directions = rng.normal(size=(n, 3))
     directions /= np.linalg.norm(directions, axis=1, keepdims=True)
     nears, fars = rng.uniform(0, 0.5, size=n), rng.uniform(2, 8, size=n)
-    step = 0.07
     rays, starts, ends = march_grid(
         grid.binaries, grid.aabbs.double(), torch.from_numpy(origins), torch.from_numpy(directions),
         torch.from_numpy(nears), torch.from_numpy(fars), step, cone_angle,
@@ -58,13 +103,15 @@ def test_march_grid_matches_a_per_ray_walk(rng, cone_angle):
     assert torch.all(rays[1:] >= rays[:-1]), "samples are packed ray by ray"
     total = 0
     for i in range(n):
-        expected = _reference_march(grid, origins[i], directions[i], nears[i], fars[i], step, cone_angle)
+        expected = _nerfacc_walk(grid, origins[i], directions[i], nears[i], fars[i], step, cone_angle)
         ours = list(zip(starts[rays == i].tolist(), ends[rays == i].tolist()))
         assert len(ours) == len(expected), f"ray {i}"
         if expected:
             np.testing.assert_allclose(np.array(ours), np.array(expected), rtol=1e-9, atol=1e-9)
         total += len(expected)
     assert total > 50  # the rays really cross occupied cells
+    if cone_angle > 0:
+        assert (ends - starts).max() > 1.5 * step, "steps grow with distance"
 
 
 def test_march_grid_with_a_small_candidate_budget(rng, monkeypatch):
@@ -144,15 +191,30 @@ def test_visibility_culling_follows_nerfacc_rule(rng):
     assert (rays == 0).sum() < (all_rays == 0).sum()
 
 
+def test_sample_agreement_sees_shifts_not_only_counts():
+    rays = torch.tensor([0, 0, 1])
+    starts, ends = torch.tensor([1.0, 1.1, 2.0]), torch.tensor([1.1, 1.2, 2.1])
+    same = sample_agreement((rays, starts, ends), (rays, starts + 1e-6, ends))
+    assert same["matched_reference"] == same["matched_other"] == 1.0 and same["max_matched_difference"] < 2e-6
+    shifted = sample_agreement((rays, starts, ends), (rays, starts + 0.01, ends + 0.01))
+    assert shifted["matched_reference"] == shifted["matched_other"] == 0.0, "same counts, other positions"
+    extra = sample_agreement((rays, starts, ends), (torch.tensor([0, 0, 1, 1]), torch.tensor([1.0, 1.1, 2.0, 2.1]),
+                                                    torch.tensor([1.1, 1.2, 2.1, 2.2])))
+    assert extra["matched_reference"] == 1.0 and extra["matched_other"] == 0.75
+
+
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="nerfacc's kernels need CUDA")
-def test_torch_path_agrees_with_nerfacc_on_cuda(rng):
+@pytest.mark.parametrize("cone_angle", [0.0, 0.004])
+def test_torch_path_agrees_with_nerfacc_on_cuda(rng, cone_angle):
     grid = _grid(rng, resolution=(32, 32, 32), levels=2).cuda()
     origins = torch.from_numpy(rng.uniform(-3, 3, size=(512, 3))).float().cuda()
     directions = torch.nn.functional.normalize(torch.randn(512, 3, device="cuda"), dim=-1)
-    nerfacc_samples = grid.sampling(origins, directions, render_step_size=0.01)
-    torch_samples = grid.sampling(origins.cpu(), directions.cpu(), render_step_size=0.01)
-    # Same grid, same steps: the sample counts agree to within rounding at cell edges.
-    assert abs(len(nerfacc_samples[0]) - len(torch_samples[0])) <= 0.02 * len(torch_samples[0])
+    options = dict(render_step_size=0.002, near_plane=0.05, cone_angle=cone_angle)
+    nerfacc_samples = grid.sampling(origins, directions, **options)
+    torch_samples = grid.sampling(origins.cpu(), directions.cpu(), **options)
+    # Same rules: the same samples, up to float32 rounding (a few near cell walls may differ).
+    agreement = sample_agreement(torch_samples, nerfacc_samples)
+    assert agreement["matched_reference"] > 0.995 and agreement["matched_other"] > 0.995, agreement
     rays, starts, ends, sigmas, n_rays = _packed(rng)
     on_gpu = render_weights(starts.float().cuda(), ends.float().cuda(), sigmas.float().cuda(), rays.cuda(), n_rays)
     torch.testing.assert_close(on_gpu.cpu(), render_weights(starts.float(), ends.float(), sigmas.float(), rays, n_rays))
