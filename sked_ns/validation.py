@@ -142,8 +142,8 @@ def warn_unusual_options(options, memory: Optional[int] = None) -> List[str]:
         needed, memory = guidance_render_bytes(options), device_memory() if memory is None else memory
         if needed > memory:
             refuse([f"{flag('guidance_resolution')} {resolution}: a {resolution}x{resolution} render with its "
-                    f"gradients needs about {needed / 2**30:.0f} GiB, more than this device's {memory / 2**30:.0f} GiB. "
-                    f"Use at most {LARGE_GUIDANCE_RESOLUTION} (the paper uses 128)."])
+                    f"gradients needs about {needed / 2**30:.0f} GiB, more than this device's "
+                    f"{memory / 2**30:.0f} GiB. Use at most {LARGE_GUIDANCE_RESOLUTION} (the paper uses 128)."])
         messages.append(f"{flag('guidance_resolution')} {resolution}: larger than Stable Diffusion's "
                         f"{LARGE_GUIDANCE_RESOLUTION}-pixel input and {(resolution / 128) ** 2:.0f}x the paper's 128 "
                         f"in rays per step (about {needed / 2**30:.1f} GiB); nothing is gained past 512.")
