@@ -397,8 +397,11 @@ class SkedMixin:
             pred_image=outputs["rgb"], pred_accumulation=outputs["accumulation"], gt_image=rgb.to(outputs["rgb"]))
         if not self._photos_checked:
             # Once, on the first batch (the edit is still the base there, or holds it at these rays when resumed).
-            self.base_photo_psnr = check_base_explains_photos(predicted, truth)
             self._photos_checked = True
+            self.base_photo_psnr, explained = check_base_explains_photos(predicted, truth)
+            if not explained:
+                self.config.lambda_photo = 0.0  # this model's copy of the config: config.yml keeps what was typed
+                return None
         return torch.nn.functional.mse_loss(predicted.float(), truth.float()), outputs, safe.float().mean()
 
     def get_sked_loss_dict(
