@@ -19,6 +19,7 @@ from torch.cuda.amp.grad_scaler import GradScaler
 from sked_ns.base_scene import check_same_frame, resolve_base
 from sked_ns.core import is_carving
 from sked_ns.datamanager import SkedDataManagerConfig
+from sked_ns.guidance import check_guidance
 from sked_ns.nerfacto_model import SkedNerfactoModelConfig
 
 
@@ -44,6 +45,7 @@ class SkedPipeline(VanillaPipeline):
         refuse_multi_device(world_size)
         if config.model.sketches is None:  # before any data is read
             raise ValueError("SKED needs a sketch set: pass --sketches <folder with sketches.json>.")
+        check_guidance(config.model.guidance, config.model.prompt)  # e.g. --prompt "" would carve: refused first
         # nerfstudio's set-up; the model loads the sketch set in the data's frame (model_frame_sketches).
         super().__init__(config, device, test_mode=test_mode, world_size=world_size, local_rank=local_rank,
                          grad_scaler=grad_scaler)

@@ -2,12 +2,18 @@
 
 from __future__ import annotations
 
+import gc
+import json
+import shutil
+import weakref
+
 import numpy as np
 import pytest
 import torch
 
-from sked_ns.guidance import RenderedView, StableDiffusionGuidanceConfig
+from sked_ns.guidance import RenderedView, StableDiffusionGuidanceConfig, check_guidance, guidance_config
 from sked_ns.guidance.stable_diffusion import DiffusionWeightsMissing
+from sked_ns.validation import SkedOptionError, SkedOptionWarning
 from tiny_sd import build_tiny_stable_diffusion
 
 
@@ -47,7 +53,7 @@ def test_sds_gradient_reaches_the_image_and_is_finite(tiny_sd):
     assert view.image.grad is not None and torch.isfinite(view.image.grad).all() and view.image.grad.abs().sum() > 0
 
 
-@pytest.mark.parametrize("scale", [1.0, 100.0, 1000.0])
+@pytest.mark.parametrize("scale", [1.0, 100.0, 1e6])  # 1e6: refused by nothing, only warned about
 def test_sds_finite_across_guidance_scales(tiny_sd, scale):
     guidance = _guidance(tiny_sd, guidance_scale=scale)
     guidance.prepare("a red hat", "cpu", {})
@@ -83,7 +89,7 @@ def test_missing_weights_offline_say_how_to_get_them(monkeypatch, tmp_path):
 def test_incomplete_local_folder_names_the_part(tmp_path):
     (tmp_path / "sd").mkdir()
     guidance = StableDiffusionGuidanceConfig(model=str(tmp_path / "sd")).setup()
-    with pytest.raises(DiffusionWeightsMissing, match="no 'tokenizer/' here"):
+    with pytest.raises(DiffusionWeightsMissing, match="no 'scheduler/' here"):
         guidance.prepare("a red hat", "cpu", {})
 
 
@@ -174,3 +180,213 @@ def test_latents_are_sampled_from_the_vae_posterior(tiny_sd):
     assert not torch.equal(samples[0], samples[1])  # the authors sample; the mean would repeat
     torch.testing.assert_close(samples.mean(0, keepdim=True), posterior.mean * scale, atol=4 * posterior.std.max() * scale / 20, rtol=0)
     torch.testing.assert_close(samples.std(0, keepdim=True), posterior.std * scale, rtol=0.15, atol=1e-6)
+
+
+# ---- SD 2.x: v-prediction ----------------------------------------------------------------------------
+def _with_prediction_type(tiny_sd, folder, prediction_type):
+    """The tiny checkpoint whose scheduler says its UNet predicts `prediction_type`."""
+    shutil.copytree(tiny_sd, folder)
+    config_file = folder / "scheduler" / "scheduler_config.json"
+    config_file.write_text(json.dumps({**json.loads(config_file.read_text()), "prediction_type": prediction_type}))
+    return folder
+
+
+class StubVUNet(StubUNet):
+    """The v-predicting twin of StubUNet: the same noise estimate, expressed as v (diffusers' get_velocity)."""
+
+    def __call__(self, sample, timestep, encoder_hidden_states):
+        eps = super().__call__(sample, timestep, encoder_hidden_states).sample
+        alpha_bar = self.guidance.alphas_cumprod[timestep].view(-1, 1, 1, 1)
+        x0 = (sample - (1 - alpha_bar).sqrt() * eps) / alpha_bar.sqrt()
+        v = self.guidance.scheduler.get_velocity(x0, eps, timestep)
+        return type("UNetOutput", (), {"sample": v})()
+
+
+def test_v_prediction_gives_the_gradient_of_the_equivalent_noise_model(tiny_sd, tmp_path):
+    gradients = {}
+    for prediction_type, unet in (("epsilon", StubUNet), ("v_prediction", StubVUNet)):
+        guidance = _guidance(_with_prediction_type(tiny_sd, tmp_path / prediction_type, prediction_type))
+        guidance.prepare("a red hat", "cpu", {})
+        assert guidance.prediction_type == prediction_type
+        latents = torch.randn(1, 4, 4, 4, generator=torch.Generator().manual_seed(0), requires_grad=True)
+        guidance.encode = lambda image: latents
+        guidance._unet_forward = unet(guidance, latents)
+        torch.manual_seed(0)  # the same t and noise for both
+        guidance(_view(direction="side"), step=0)["sds_loss"].backward()
+        gradients[prediction_type] = latents.grad
+    assert gradients["epsilon"].abs().max() > 0.01
+    torch.testing.assert_close(gradients["v_prediction"], gradients["epsilon"], rtol=1e-4, atol=1e-5)
+
+
+def test_noise_from_v_by_hand():
+    from sked_ns.guidance.stable_diffusion import noise_prediction
+
+    alpha_bar, x0, eps = torch.tensor(0.36), torch.tensor(2.0), torch.tensor(-0.5)
+    noisy = 0.6 * x0 + 0.8 * eps  # sqrt(0.36), sqrt(0.64)
+    v = 0.6 * eps - 0.8 * x0
+    torch.testing.assert_close(noise_prediction(v, noisy, alpha_bar, "v_prediction"), eps)
+    assert noise_prediction(v, noisy, alpha_bar, "epsilon") is v
+
+
+def test_an_unsupported_prediction_type_is_refused_before_the_weights_load(tiny_sd, tmp_path):
+    guidance = _guidance(_with_prediction_type(tiny_sd, tmp_path / "sample", "sample"))
+    with pytest.raises(ValueError, match=r"predicts 'sample'.*supports.*epsilon.*v_prediction"):
+        guidance.prepare("a red hat", "cpu", {})
+    assert not hasattr(guidance, "unet")
+
+
+# ---- memory: what reaches the device ------------------------------------------------------------------
+def test_the_vae_decoder_never_moves_and_the_text_encoder_is_freed(tiny_sd, monkeypatch):
+    from diffusers import AutoencoderKL
+    from transformers import CLIPTextModel
+
+    moved_with_decoder, text_encoders = [], []
+    module_to = torch.nn.Module.to
+
+    def to(module, *args, **kwargs):
+        if isinstance(module, AutoencoderKL):
+            moved_with_decoder.append(module.decoder is not None)
+        return module_to(module, *args, **kwargs)
+
+    load_text_encoder = CLIPTextModel.from_pretrained
+
+    def load_and_watch(*args, **kwargs):
+        model = load_text_encoder(*args, **kwargs)
+        text_encoders.append(weakref.ref(model))
+        return model
+
+    monkeypatch.setattr(torch.nn.Module, "to", to)
+    monkeypatch.setattr(CLIPTextModel, "from_pretrained", load_and_watch)
+    guidance = _guidance(tiny_sd)
+    guidance.prepare("a red hat", "cpu", {})
+    assert moved_with_decoder == [False]  # the VAE moved once, without its decoder
+    assert guidance.vae.decoder is None and guidance.vae.post_quant_conv is None
+    gc.collect()
+    assert len(text_encoders) == 1 and text_encoders[0]() is None  # nothing holds the text encoder
+
+
+# ---- the diffusion model on its own device ------------------------------------------------------------
+def test_guidance_device_parses_from_the_command_line():
+    import tyro
+
+    from sked_ns.config import sked_method
+
+    config = sked_method.config
+    parsed = tyro.cli(type(config), default=config, args=["pipeline.model.guidance:stable-diffusion",
+                                                          "--pipeline.model.guidance.device", "cuda:1"])
+    assert parsed.pipeline.model.guidance.device == "cuda:1"
+    assert StableDiffusionGuidanceConfig().device is None  # default: the edit's device
+
+
+def test_guidance_runs_on_its_own_device_and_the_gradient_comes_back(tiny_sd):
+    # The edit's device here is "meta" (no storage): every module and the loss's graph must be on the guidance's.
+    guidance = _guidance(tiny_sd, device="cpu")
+    guidance.prepare("a red hat", "meta", {})
+    devices = {p.device.type for module in (guidance.unet, guidance.vae) for p in module.parameters()}
+    assert devices == {"cpu"} and guidance.alphas_cumprod.device.type == "cpu"
+    view = _view()
+    loss = guidance(view, step=0)["sds_loss"]
+    assert loss.device == view.image.device
+    loss.backward()
+    assert view.image.grad.abs().sum() > 0
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+def test_guidance_on_cuda_returns_the_loss_to_a_cpu_render(tiny_sd):
+    guidance = _guidance(tiny_sd, device="cuda:0", compile=False)
+    guidance.prepare("a red hat", "cpu", {})
+    assert next(guidance.unet.parameters()).device.type == "cuda"
+    view = _view()
+    loss = guidance(view, step=0)["sds_loss"]
+    loss.backward()
+    assert loss.device.type == "cpu" and torch.isfinite(view.image.grad).all() and view.image.grad.abs().sum() > 0
+
+
+@pytest.mark.parametrize("device, message", [("gpu:0", "not a torch device"), ("cuda:64", "CUDA device")])
+def test_a_bad_guidance_device_is_refused(device, message):
+    with pytest.raises(SkedOptionError, match=rf"--pipeline.model.guidance.device.*{message}"):
+        StableDiffusionGuidanceConfig(device=device).check()
+
+
+# ---- bad input: prompt, guidance scale and the other numbers, the model folder ---------------------------
+@pytest.mark.parametrize("prompt", ["", "   "])
+def test_an_empty_prompt_is_refused_and_says_how_to_carve(prompt):
+    with pytest.raises(SkedOptionError, match=r"--prompt .* is empty\. To carve .*leave out --prompt"):
+        check_guidance(StableDiffusionGuidanceConfig(), prompt)
+    check_guidance(StableDiffusionGuidanceConfig(), None)  # carving, as asked
+
+
+def test_a_prompt_given_to_guidance_without_prompts_is_warned_about():
+    with pytest.warns(SkedOptionWarning, match=r"--prompt 'a hat' is ignored.*guidance:reference"):
+        check_guidance(guidance_config("reference"), "a hat")
+
+
+def test_a_long_prompt_is_cut_with_a_warning_and_keeps_its_view_suffixes(tiny_sd):
+    from transformers import CLIPTokenizer
+
+    from sked_ns.guidance.stable_diffusion import view_prompt_tokens
+
+    tokenizer = CLIPTokenizer.from_pretrained(str(tiny_sd), subfolder="tokenizer")
+    assert tokenizer.model_max_length == 77  # the tiny tokenizer has one token per character
+    suffixes = {"front": ", front view", "overhead": ", overhead view"}
+    short = view_prompt_tokens(tokenizer, "a red hat", suffixes)
+    assert short["front"] == tokenizer("a red hat, front view", padding="max_length", max_length=77).input_ids
+    # 82 tokens: cut at 77 as before, every view prompt would lose its whole suffix and all would be the same.
+    prompt = "a tall red felt chef hat with golden stripes, a feather and tiny bells on its wide brim, shiny and new"
+    with pytest.warns(SkedOptionWarning, match=r"--prompt is 82 tokens.*reads 77"):
+        long = view_prompt_tokens(tokenizer, prompt, suffixes)
+    for key, suffix in suffixes.items():
+        assert len(long[key]) == 77 and tokenizer.decode(long[key], skip_special_tokens=True).endswith(suffix[2:])
+    guidance = _guidance(tiny_sd)
+    with pytest.warns(SkedOptionWarning, match="82 tokens"):
+        guidance.prepare(prompt, "cpu", {})
+    assert not torch.equal(guidance.embeddings["front"], guidance.embeddings["back"])
+
+
+@pytest.mark.parametrize("scale", [0.0, -7.5, 0.5, float("nan"), float("inf")])
+def test_an_impossible_guidance_scale_is_refused(scale):
+    with pytest.raises(SkedOptionError, match=r"--pipeline.model.guidance.guidance-scale .*>= 1"):
+        StableDiffusionGuidanceConfig(guidance_scale=scale).check()
+
+
+def test_a_huge_guidance_scale_is_warned_about():
+    with pytest.warns(SkedOptionWarning, match=r"guidance-scale 1e\+06.*100"):
+        StableDiffusionGuidanceConfig(guidance_scale=1e6).check()  # its loss stays finite: see above
+    StableDiffusionGuidanceConfig(guidance_scale=1.0).check()  # 1 is legal: the conditional prediction alone
+
+
+@pytest.mark.parametrize("settings, flag", [
+    ({"t_range": (0.0, 0.5)}, "t-range"), ({"t_range": (0.5, 0.2)}, "t-range"), ({"t_range": (0.02, 1.5)}, "t-range"),
+    ({"t_range": (0.02, float("nan"))}, "t-range"), ({"weight": -1.0}, "weight"), ({"image_size": 0}, "image-size"),
+])
+def test_impossible_guidance_numbers_are_refused(settings, flag):
+    with pytest.raises(SkedOptionError, match=rf"--pipeline.model.guidance.{flag} "):
+        StableDiffusionGuidanceConfig(**settings).check()
+
+
+def test_a_zero_sds_weight_is_warned_about():
+    with pytest.warns(SkedOptionWarning, match=r"guidance.weight 0"):
+        StableDiffusionGuidanceConfig(weight=0.0).check()
+
+
+def test_the_last_timestep_fraction_1_stays_in_the_schedule(tiny_sd):
+    guidance, _ = _stubbed(tiny_sd, t_range=(0.99, 1.0))
+    for step in range(40):
+        guidance(_view(size=8), step)
+    assert max(int(call["t"].max()) for call in guidance._unet_forward.calls) == 999
+
+
+@pytest.mark.parametrize("model", ["./missing-sd", "/no/such/sd", "~/no-such-sd-folder", "models/sd/v1", "models/sd"])
+def test_a_missing_local_folder_is_not_taken_for_a_hub_id(tmp_path, monkeypatch, model):
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "models").mkdir()  # "models/sd" exists in part: a path, not the hub id org/name
+    config = StableDiffusionGuidanceConfig(model=model)
+    with pytest.raises(SkedOptionError, match=r"--pipeline.model.guidance.model .*does not exist"):
+        config.check()
+    with pytest.raises(DiffusionWeightsMissing, match="does not exist"):
+        config.setup().prepare("a red hat", "cpu", {})
+
+
+def test_a_hub_id_is_still_a_hub_id(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    StableDiffusionGuidanceConfig(model="CompVis/stable-diffusion-v1-4").check()

@@ -13,13 +13,14 @@ from __future__ import annotations
 import sys
 import warnings
 from importlib.metadata import entry_points
-from typing import Dict, Type, Union
+from typing import Dict, Optional, Type, Union
 
 import tyro
 from typing_extensions import Annotated
 
 from sked_ns.guidance.base import Guidance, GuidanceConfig, RenderedView
 from sked_ns.guidance.stable_diffusion import StableDiffusionGuidance, StableDiffusionGuidanceConfig
+from sked_ns.validation import refuse, warn
 
 ENTRY_POINT_GROUP = "sked_ns.guidance"
 BUILT_IN: Dict[str, Type[GuidanceConfig]] = {"stable-diffusion": StableDiffusionGuidanceConfig}
@@ -66,6 +67,17 @@ def guidance_name(config: GuidanceConfig) -> str:
     return type(config).__name__
 
 
+def check_guidance(config: GuidanceConfig, prompt: Optional[str]) -> None:
+    """The prompt against the guidance, then the guidance's own settings; before any data is read."""
+    if prompt is not None and not config.uses_prompt:
+        warn(f"--prompt {prompt!r} is ignored: pipeline.model.guidance:{guidance_name(config)} does not use a prompt.")
+    elif prompt is not None and not prompt.strip():
+        # An unset shell variable must not delete content: carving is asked for by leaving the prompt out.
+        refuse([f"--prompt {prompt!r} is empty. To carve the sketched region away, leave out --prompt; otherwise "
+                "say what should be there."])
+    config.check()
+
+
 def _subcommands():
     # One tyro subcommand per component: `pipeline.model.guidance:reference --pipeline.model.guidance.target vase`.
     options = tuple(Annotated[component, tyro.conf.subcommand(name)] for name, component in guidance_components().items())
@@ -81,6 +93,7 @@ __all__ = [
     "GuidanceChoice",
     "GuidanceConfig",
     "RenderedView",
+    "check_guidance",
     "StableDiffusionGuidance",
     "StableDiffusionGuidanceConfig",
     "guidance_components",

@@ -34,6 +34,9 @@ class GuidanceConfig(InstantiateConfig):
     uses_prompt: ClassVar[bool] = False
     """Whether the text prompt is what it pulls towards (then no prompt means carving)."""
 
+    def check(self) -> None:
+        """Refuse settings that cannot work, warn on ones that are almost surely a mistake (before any data is read)."""
+
 
 class Guidance:
     """Turns a rendered view into losses; `prepare` runs once before training."""

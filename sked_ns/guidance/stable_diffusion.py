@@ -1,10 +1,12 @@
 """Score distillation (DreamFusion) through a diffusers Stable Diffusion checkpoint.
 
-Loads any SD 1.x/2.x diffusers checkpoint by hub id or local folder; offline
-(`HF_HUB_OFFLINE=1`, or `local_files_only`) it reads only local files and says how to
-provide missing weights. Only what the loop uses stays in memory: the UNet and the VAE
-encoder; the text encoder is freed once the (directional) prompt embeddings exist, and
-the VAE decoder is loaded only when an image is decoded.
+Loads any SD 1.x/2.x diffusers checkpoint by hub id or local folder: noise-predicting ones
+(SD 1.x, 2.x base 512) and v-predicting ones (SD 2.x 768), whose output is turned into the
+noise prediction SDS needs. Offline (`HF_HUB_OFFLINE=1`, or `local_files_only`) it reads only
+local files and says how to provide missing weights. Only what the loop uses reaches the
+device: the UNet and the VAE encoder; the text encoder is freed once the (directional) prompt
+embeddings exist, and the VAE decoder is dropped before the VAE moves (loaded again only when
+an image is decoded). The diffusion model may run on its own device (`device`).
 """
 
 from __future__ import annotations
@@ -13,7 +15,7 @@ import gc
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import ClassVar, Dict, Literal, Optional, Tuple, Type, get_args
+from typing import ClassVar, Dict, List, Literal, Optional, Tuple, Type, get_args
 
 import torch
 import torch.nn.functional as F
@@ -21,14 +23,29 @@ from torch import Tensor
 
 from sked_ns.guidance.base import Guidance, GuidanceConfig, RenderedView
 from sked_ns.random_views import DIRECTIONS
+from sked_ns.validation import _is_number, refuse, warn
 
 
 SdsWeighting = Literal["authors", "dreamfusion"]
 SDS_WEIGHTINGS = get_args(SdsWeighting)
+PREDICTION_TYPES = ("epsilon", "v_prediction")
+"""What the UNet may predict (its scheduler's `prediction_type`): the noise (SD 1.x, 2.x base) or v (SD 2.x 768)."""
+FLAGS = "--pipeline.model.guidance."
+MAX_GUIDANCE_SCALE = 200.0
+"""Above this the SDS loss explodes quadratically (1e6 gives 2e11): DreamFusion and SKED use 100."""
 
 
 class DiffusionWeightsMissing(FileNotFoundError):
     """The diffusion model's weights are not available where we may look."""
+
+
+def noise_prediction(output: Tensor, noisy: Tensor, alpha_bar: Tensor, prediction_type: str) -> Tensor:
+    """The UNet's output as the noise it implies: v = sqrt(a) eps - sqrt(1 - a) x_0 gives eps = sqrt(a) v + sqrt(1 - a) x_t."""
+    if prediction_type == "epsilon":
+        return output
+    if prediction_type == "v_prediction":
+        return alpha_bar.sqrt() * output + (1 - alpha_bar).sqrt() * noisy
+    raise ValueError(f"the UNet predicts {prediction_type!r}; score distillation supports {PREDICTION_TYPES}.")
 
 
 def sds_weight(alphas_cumprod: Tensor, weighting: str) -> Tensor:
@@ -48,13 +65,14 @@ class StableDiffusionGuidanceConfig(GuidanceConfig):
     _target: Type = field(default_factory=lambda: StableDiffusionGuidance)
     uses_prompt: ClassVar[bool] = True
     model: str = "CompVis/stable-diffusion-v1-4"
-    """Hub id or local folder of a diffusers Stable Diffusion checkpoint."""
+    """Hub id (org/name) or local folder of a diffusers Stable Diffusion checkpoint: SD 1.x, 2.x base (512 px)
+    or 2.x 768 px (v-prediction; then --pipeline.model.guidance.image-size 768)."""
     local_files_only: bool = False
     """Never contact the hub (also implied by HF_HUB_OFFLINE=1)."""
     guidance_scale: float = 100.0
-    """Classifier-free guidance scale (DreamFusion uses 100)."""
+    """Classifier-free guidance scale, >= 1 (1 = the text-conditioned prediction alone; DreamFusion uses 100)."""
     t_range: Tuple[float, float] = (0.02, 0.98)
-    """Diffusion timesteps sampled, as fractions of the schedule (t in [20, 980] of 1000)."""
+    """Diffusion timesteps sampled, as fractions of the schedule in (0, 1], smallest first (t in [20, 980] of 1000)."""
     weighting: SdsWeighting = "authors"
     """w(t) in the SDS gradient w(t) (eps_hat - eps): "authors" = sqrt(alpha_bar_t) (1 - alpha_bar_t), the SKED
     code's, with which the default lambdas were tuned; "dreamfusion" = 1 - alpha_bar_t (with SD's schedule 2.6x the
@@ -69,6 +87,80 @@ class StableDiffusionGuidanceConfig(GuidanceConfig):
     """torch.compile the UNet and VAE encoder on CUDA."""
     weight: float = 1.0
     """Multiplier of L_SDS."""
+    device: Optional[str] = None
+    """Where the diffusion model runs, e.g. cuda:1 when one card cannot hold both it and the NeRF (default: the
+    edit's device). Renders go there and the SDS gradient comes back."""
+
+    def check(self) -> None:
+        problems = []
+        scale = self.guidance_scale
+        if not (_is_number(scale) and scale >= 1):
+            problems.append(f"{FLAGS}guidance-scale {scale!r}: must be a finite number >= 1 (1 = the text-conditioned "
+                            "prediction alone; below 1 the prompt counts less, 0 ignores it and a negative scale pushes "
+                            "away from it). DreamFusion and SKED use 100.")
+        t_range = tuple(self.t_range)
+        if not (len(t_range) == 2 and all(map(_is_number, t_range)) and 0 < t_range[0] <= t_range[1] <= 1):
+            problems.append(f"{FLAGS}t-range {' '.join(map(str, self.t_range))}: must be two fractions of the diffusion "
+                            "schedule in (0, 1], smallest first (default 0.02 0.98).")
+        if not (_is_number(self.weight) and self.weight >= 0):
+            problems.append(f"{FLAGS}weight {self.weight!r}: a loss weight must be a finite number >= 0.")
+        if not (isinstance(self.image_size, int) and self.image_size > 0):
+            problems.append(f"{FLAGS}image-size {self.image_size!r}: must be a whole number of pixels > 0 (SD's 512).")
+        problems += _model_problems(self.model) + _device_problems(self.device)
+        refuse(problems)
+        if scale > MAX_GUIDANCE_SCALE:
+            warn(f"{FLAGS}guidance-scale {scale:g}: the SDS gradient grows with the scale (its loss with the square); "
+                 f"above {MAX_GUIDANCE_SCALE:g} it swamps every other loss. DreamFusion and SKED use 100.")
+        if self.weight == 0:
+            warn(f"{FLAGS}weight 0: score distillation is off, so nothing but L_sil shapes the sketched region.")
+
+
+def looks_like_path(source: str) -> bool:
+    """A folder, not a hub id: it starts with / . ~, has more than one '/', or its first part exists here."""
+    parts = source.replace("\\", "/").split("/")
+    return source.startswith(("/", ".", "~", "\\")) or len(parts) > 2 or Path(parts[0]).expanduser().exists()
+
+
+def _model_problems(source: str) -> List[str]:
+    local = Path(source).expanduser()
+    if looks_like_path(source) and not local.is_dir():
+        what = "is a file, not a folder" if local.exists() else "does not exist"
+        return [f"{FLAGS}model {source}: the folder {local.resolve()} {what}. Pass the folder holding a diffusers "
+                "Stable Diffusion checkpoint (unet/, vae/, text_encoder/, tokenizer/, scheduler/), or a hub id such "
+                "as CompVis/stable-diffusion-v1-4."]
+    return []
+
+
+def _device_problems(device: Optional[str]) -> List[str]:
+    if device is None:
+        return []
+    try:
+        parsed = torch.device(device)
+    except (RuntimeError, ValueError):
+        return [f"{FLAGS}device {device!r}: not a torch device; pass e.g. cuda:1, or leave it out for the edit's."]
+    if parsed.type == "cuda" and (parsed.index or 0) >= torch.cuda.device_count():
+        return [f"{FLAGS}device {device}: this machine has {torch.cuda.device_count()} CUDA device(s); pass one of "
+                "them, or leave it out for the edit's."]
+    return []
+
+
+def view_prompt_tokens(tokenizer, prompt: str, suffixes: Dict[str, str]) -> Dict[str, List[int]]:
+    """Token ids, padded, of the prompt plus each suffix; an over-long prompt is cut so that every suffix still fits."""
+    room = tokenizer.model_max_length - 2  # start and end tokens
+    words = tokenizer(prompt, add_special_tokens=False).input_ids
+    endings = {key: tokenizer(suffix, add_special_tokens=False).input_ids for key, suffix in suffixes.items()}
+    kept = room - max(map(len, endings.values()))
+    if len(words) > kept:
+        # Cut from the prompt, not the suffix: cut suffixes would make the view prompts identical.
+        warn(f"--prompt is {len(words)} tokens, but the text encoder reads {tokenizer.model_max_length} with its start and "
+             f"end tokens and the view suffix (up to {room - kept}): only its first {kept} are used "
+             f"(\"{tokenizer.decode(words[:kept])}\"). Shorten it.")
+        words = words[:kept]
+    tokens = {}
+    for key, ending in endings.items():
+        ids = [tokenizer.bos_token_id] + words + ending + [tokenizer.eos_token_id]
+        tokens[key] = ids + [tokenizer.pad_token_id] * (tokenizer.model_max_length - len(ids))
+    return tokens
 
 
 def _offline(config: StableDiffusionGuidanceConfig) -> bool:
@@ -81,6 +173,8 @@ class StableDiffusionGuidance(Guidance):
     def _load(self, cls, subfolder: str, **kwargs):
         source = self.config.model
         local = Path(source).expanduser()
+        for problem in _model_problems(source):  # a mistyped folder is not a hub id
+            raise DiffusionWeightsMissing(problem)
         if local.exists() and not (local / subfolder).is_dir():
             # Checked here: some loaders quietly build a default object from a missing folder.
             raise DiffusionWeightsMissing(
@@ -118,44 +212,49 @@ class StableDiffusionGuidance(Guidance):
 
     def prepare(self, prompt: Optional[str], device: str, context: Dict) -> None:
         if not prompt or not prompt.strip():
-            raise ValueError("Score distillation needs a text prompt: pass --prompt \"...\" (or carve with no guidance).")
+            raise ValueError("Score distillation needs a text prompt: pass --prompt \"...\" (to carve the sketched "
+                             "region away instead, leave out --prompt).")
         sds_weight(torch.zeros(1), self.config.weighting)  # a bad weighting fails before any weights load
         from diffusers import AutoencoderKL, DDPMScheduler, UNet2DConditionModel
         from transformers import CLIPTextModel, CLIPTokenizer
 
-        self.device = torch.device(device)
+        self.device = torch.device(self.config.device or device)
         self.dtype = torch.float16 if (self.device.type == "cuda" and self.config.half_precision) else torch.float32
-        tokenizer = self._load(CLIPTokenizer, "tokenizer")
-        text_encoder = self._load(CLIPTextModel, "text_encoder").to(self.device)
-        prompts = {"": ""}
-        for direction in set(DIRECTIONS):
-            prompts[direction] = f"{prompt}, {direction} view" if self.config.directional_prompts else prompt
-        with torch.no_grad():
-            tokens = tokenizer(
-                list(prompts.values()), padding="max_length", max_length=tokenizer.model_max_length,
-                truncation=True, return_tensors="pt",
-            ).input_ids.to(self.device)
-            embeddings = text_encoder(tokens)[0].to(self.dtype)
-        self.embeddings = dict(zip(prompts.keys(), embeddings))  # "" is the unconditional one
-        del text_encoder, tokenizer  # computed once: the text encoder is not needed again
-        gc.collect()
-
-        self.unet = self._load(UNet2DConditionModel, "unet", torch_dtype=self.dtype).to(self.device).eval()
-        vae = self._load(AutoencoderKL, "vae", torch_dtype=self.dtype).to(self.device).eval()
-        vae.decoder = None  # loaded again only to decode (see `decode`)
-        vae.post_quant_conv = None
-        self.vae = vae
-        for module in (self.unet, self.vae):
-            module.requires_grad_(False)
-        scheduler = self._load(DDPMScheduler, "scheduler")
+        scheduler = self._load(DDPMScheduler, "scheduler")  # first: an unsupported checkpoint fails before the weights
+        self.prediction_type = scheduler.config.prediction_type
+        if self.prediction_type not in PREDICTION_TYPES:
+            raise ValueError(f"{self.config.model}: its UNet predicts {self.prediction_type!r} (scheduler/"
+                             f"scheduler_config.json); score distillation supports {PREDICTION_TYPES}: SD 1.x, 2.x base "
+                             f"and 2.x 768 checkpoints ({FLAGS}model).")
         self.alphas_cumprod = scheduler.alphas_cumprod.to(self.device, torch.float32)
         self.num_train_timesteps = int(scheduler.config.num_train_timesteps)
         self.scheduler = scheduler
+        self.embeddings = self._embed(prompt, self._load(CLIPTokenizer, "tokenizer"),
+                                      self._load(CLIPTextModel, "text_encoder"))
+        gc.collect()  # the text encoder is not needed again
+
+        self.unet = self._load(UNet2DConditionModel, "unet", torch_dtype=self.dtype).to(self.device).eval()
+        vae = self._load(AutoencoderKL, "vae", torch_dtype=self.dtype).eval()
+        vae.decoder = None  # dropped before the move, so it never takes device memory (see `decode`)
+        vae.post_quant_conv = None
+        self.vae = vae.to(self.device)
+        for module in (self.unet, self.vae):
+            module.requires_grad_(False)
         self._unet_forward = self.unet.forward
         self._encode = self._posterior
         if self.config.compile and self.device.type == "cuda":
             self._unet_forward = torch.compile(self.unet.forward)
             self._encode = torch.compile(self._encode)
+
+    def _embed(self, prompt: str, tokenizer, text_encoder) -> Dict[str, Tensor]:
+        """Text embeddings of the prompt per view direction, and of "" (the unconditional one)."""
+        directional = self.config.directional_prompts
+        tokens = view_prompt_tokens(tokenizer, prompt, {d: f", {d} view" if directional else "" for d in set(DIRECTIONS)})
+        tokens[""] = tokenizer("", padding="max_length", max_length=tokenizer.model_max_length).input_ids
+        text_encoder = text_encoder.to(self.device)
+        with torch.no_grad():
+            embeddings = text_encoder(torch.tensor(list(tokens.values()), device=self.device))[0].to(self.dtype)
+        return dict(zip(tokens.keys(), embeddings))
 
     def _posterior(self, image: Tensor) -> Tuple[Tensor, Tensor]:
         """Mean and standard deviation of the VAE's latent distribution (tensors only: compiles whole)."""
@@ -165,7 +264,7 @@ class StableDiffusionGuidance(Guidance):
     def encode(self, image: Tensor) -> Tensor:
         """[0, 1] images -> scaled latents sampled from the VAE posterior; gradients flow through the encoder."""
         size = self.config.image_size
-        image = F.interpolate(image, (size, size), mode="bilinear", align_corners=False)
+        image = F.interpolate(image.to(self.device), (size, size), mode="bilinear", align_corners=False)
         mean, std = self._encode((image * 2 - 1).to(self.dtype))
         # A sample, not the mean: the authors' code encodes with latent_dist.sample().
         latents = mean + std * torch.randn_like(mean)
@@ -174,7 +273,8 @@ class StableDiffusionGuidance(Guidance):
     def __call__(self, view: RenderedView, step: int) -> Dict[str, Tensor]:
         latents = self.encode(view.image)
         batch = latents.shape[0]
-        low, high = (int(fraction * self.num_train_timesteps) for fraction in self.config.t_range)
+        low, high = (min(int(fraction * self.num_train_timesteps), self.num_train_timesteps - 1)
+                     for fraction in self.config.t_range)
         t = torch.randint(low, high + 1, (batch,), device=self.device)
         with torch.no_grad():
             noise = torch.randn_like(latents)
@@ -184,12 +284,15 @@ class StableDiffusionGuidance(Guidance):
             predicted = self._unet_forward(torch.cat([noisy] * 2), torch.cat([t] * 2), encoder_hidden_states=context).sample
             unconditional, text = predicted.float().chunk(2)
             guided = unconditional + self.config.guidance_scale * (text - unconditional)
-            weight = sds_weight(self.alphas_cumprod[t], self.config.weighting).view(-1, 1, 1, 1)
+            alpha_bar = self.alphas_cumprod[t].view(-1, 1, 1, 1)
+            # After guidance: the conversion is affine with the same x_t in both halves, so it commutes with it.
+            guided = noise_prediction(guided, noisy.float(), alpha_bar, self.prediction_type)
+            weight = sds_weight(alpha_bar, self.config.weighting)
             gradient = torch.nan_to_num(weight * (guided - noise), nan=0.0, posinf=0.0, neginf=0.0)
             target = latents - gradient
         # d loss / d latents = gradient, without back-propagating through the UNet.
         loss = 0.5 * F.mse_loss(latents, target.detach(), reduction="sum") / batch
-        return {"sds_loss": self.config.weight * loss}
+        return {"sds_loss": (self.config.weight * loss).to(view.image.device)}  # autograd carries it across devices
 
     @torch.no_grad()
     def decode(self, latents: Tensor) -> Tensor:
