@@ -25,6 +25,7 @@ import hashlib
 import os
 import re
 import shutil
+import subprocess
 import sys
 import tempfile
 import time
@@ -123,7 +124,12 @@ def needs_patched_build() -> bool:
 
 
 def require_nvcc() -> Path:
-    """nvcc of the toolkit torch builds with, or an error saying what to install."""
+    """nvcc of the toolkit torch builds with, or an error saying what to install.
+
+    When CUDA_HOME holds an nvcc without the toolkit's headers (a wrapper script, e.g. in
+    /usr/local/bin, makes torch guess CUDA_HOME=/usr/local), torch's CUDA_HOME is pointed at the
+    toolkit that nvcc runs, so the host compiler and the linker find the same toolkit as nvcc.
+    """
     from torch.utils import cpp_extension
 
     home = cpp_extension.CUDA_HOME
@@ -134,7 +140,29 @@ def require_nvcc() -> Path:
             f"which was not found (CUDA_HOME={home or 'unset'}, no nvcc on PATH). Install the CUDA toolkit "
             f"{torch.version.cuda or ''} matching torch, then put its bin/ on PATH or set CUDA_HOME to it."
         )
+    if not (Path(home) / "include" / "cuda_runtime.h").exists():
+        toolkit = _toolkit_of(nvcc)
+        if toolkit is None:
+            raise RuntimeError(f"CUDA_HOME={home} has an nvcc but not the CUDA toolkit's include/cuda_runtime.h: "
+                               "set CUDA_HOME to the CUDA toolkit's folder (e.g. /usr/local/cuda).")
+        cpp_extension.CUDA_HOME = str(toolkit)  # torch reads it when it writes the build's paths
+        nvcc = toolkit / "bin" / "nvcc"
     return nvcc
+
+
+def _toolkit_of(nvcc: Path) -> Optional[Path]:
+    """The toolkit folder an nvcc (maybe a wrapper script) really runs from: its `--dryrun` says TOP=."""
+    with tempfile.TemporaryDirectory() as folder:
+        unit = Path(folder) / "empty.cu"
+        unit.write_text("")
+        try:
+            dry = subprocess.run([str(nvcc), "--dryrun", "-c", str(unit), "-o", str(unit.with_suffix(".o"))],
+                                 capture_output=True, text=True, timeout=60)
+        except (OSError, subprocess.TimeoutExpired):
+            return None
+    tops = re.findall(r"^#\$ TOP=(.+)$", dry.stdout + dry.stderr, flags=re.MULTILINE)
+    toolkit = Path(tops[0].strip()).resolve() if tops else None
+    return toolkit if toolkit and (toolkit / "include" / "cuda_runtime.h").exists() else None
 
 
 def _extra_header_dirs(toolkit_include: Path) -> List[str]:

@@ -2,9 +2,11 @@
 
 nerfacc's grid traversal and packed scans are CUDA-only. On CUDA they are used exactly as
 nerfstudio uses them; elsewhere (CPU tests, the CPU demo) the same sampling runs in plain
-torch: steps of `render_step_size` (growing with `cone_angle`), kept where the step's
-midpoint falls in an occupied cell of the finest grid level containing it, then culled by
-transmittance and alpha like nerfacc's `render_visibility_from_density`.
+torch, by nerfacc 0.5.2's rules (`traverse_grids_kernel` in its cuda/csrc/grid.cu): steps
+from the near plane of calc_dt(t) = clamp(t cone_angle, render_step_size, 1e10) through
+occupied cells, and of a fixed calc_dt taken on entering through empty ones, kept where the
+step's midpoint falls in an occupied cell of the finest grid level containing it, then culled
+by transmittance and alpha like nerfacc's `render_visibility_from_density`.
 """
 
 from __future__ import annotations

@@ -110,6 +110,24 @@ def _fake_toolkit(tmp_path: Path, headers) -> Path:
     return home
 
 
+def test_a_wrapper_nvcc_leads_to_its_toolkit(tmp_path, monkeypatch):
+    """nvcc in /usr/local/bin as a script makes torch guess CUDA_HOME=/usr/local, which has no CUDA headers."""
+    from torch.utils import cpp_extension
+
+    toolkit = _fake_toolkit(tmp_path / "real", ["cuda_runtime.h"])
+    wrapper = tmp_path / "local"
+    (wrapper / "bin").mkdir(parents=True)
+    (wrapper / "bin" / "nvcc").write_text(f'#!/bin/sh\necho "#$ TOP={toolkit}/bin/.." >&2\n')
+    (wrapper / "bin" / "nvcc").chmod(0o755)
+    monkeypatch.setattr(cpp_extension, "CUDA_HOME", str(wrapper))
+    assert nerfacc_kernels.require_nvcc() == toolkit / "bin" / "nvcc"
+    assert cpp_extension.CUDA_HOME == str(toolkit), "torch's include and library paths follow"
+    (wrapper / "bin" / "nvcc").write_text("#!/bin/sh\n")
+    monkeypatch.setattr(cpp_extension, "CUDA_HOME", str(wrapper))
+    with pytest.raises(RuntimeError, match=r"CUDA_HOME=.*cuda_runtime\.h"):
+        nerfacc_kernels.require_nvcc()
+
+
 def _pip_header_folders():
     import nvidia
 
@@ -181,7 +199,7 @@ def test_every_nerfacc_kernel_call_gets_the_patched_build(fake_cuda, tmp_path):
     import nerfacc.cuda
     from torch.utils import cpp_extension
 
-    fake_cuda.setattr(cpp_extension, "CUDA_HOME", str(_fake_toolkit(tmp_path, [])))
+    fake_cuda.setattr(cpp_extension, "CUDA_HOME", str(_fake_toolkit(tmp_path, ["cuda_runtime.h"])))
     built = types.SimpleNamespace(traverse_grids=lambda *args: ("traversed", args))
     calls = []
     fake_cuda.setattr(nerfacc_kernels, "build_patched", lambda: calls.append(1) or built)
