@@ -2,7 +2,7 @@
 
 from sked_ns.compat import allow_numpy_in_checkpoints
 from sked_ns.errors import SkedFileNotFoundError, SkedUserError, install_excepthook
-from sked_ns.nerfacc_kernels import install_lazy_backend
+from sked_ns.nerfacc_backend import install_lazy_backend
 
 # Runs at plugin import, which every ns-* command triggers through the method registry.
 allow_numpy_in_checkpoints()

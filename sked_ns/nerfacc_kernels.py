@@ -11,7 +11,7 @@ nerfacc's own sources (lerp renamed, `cuda::std::equal_to<>` for cub::Equality) 
 JIT, and registers it as `nerfacc.csrc`, the prebuilt module nerfacc looks for first. The copy
 is written once per content, in a folder named by its hash, so later processes reuse the
 compiled extension. `install_lazy_backend` (run at plugin import) routes every nerfacc kernel
-call, stock nerfstudio models included, through `ensure_kernels`. nerfacc's installed files are
+call, stock nerfstudio models included, through `ensure_kernels` (sked_ns/nerfacc_backend.py). nerfacc's installed files are
 never modified.
 
 Check that the kernels compile and link on a machine without a GPU:
@@ -228,36 +228,6 @@ def ensure_kernels() -> str:
     _register(build_patched())
     _status = "patched"
     return _status
-
-
-BACKEND = "nerfacc.cuda._backend"
-
-
-class _LazyBackend(types.ModuleType):
-    """Stands in for nerfacc.cuda._backend: its `_C` is built by `ensure_kernels` on first use."""
-
-    def __getattr__(self, name: str):
-        if name != "_C":
-            raise AttributeError(name)
-        status = ensure_kernels()
-        if status.startswith("unavailable"):
-            raise RuntimeError("nerfacc's kernels run on CUDA only: torch sees no CUDA device here.")
-        if status == "nerfacc":  # hand over to nerfacc's own backend module
-            del sys.modules[BACKEND]
-            from nerfacc.cuda._backend import _C  # noqa: WPS433
-
-            return _C
-        return sys.modules["nerfacc.csrc"]
-
-
-def install_lazy_backend() -> None:
-    """Route nerfacc's kernel calls (nerfacc.cuda's lazy functions) through `ensure_kernels`.
-
-    nerfacc imports its backend on the first kernel call only, so a stand-in placed now is
-    what every later call finds; nothing is compiled or imported until then.
-    """
-    if BACKEND not in sys.modules:
-        sys.modules[BACKEND] = _LazyBackend(BACKEND)
 
 
 def compile_only(build_directory: Path) -> Path:

@@ -14,7 +14,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from sked_ns import nerfacc_kernels
+from sked_ns import nerfacc_backend, nerfacc_kernels
 
 GLOBAL_LERP = re.compile(r"(?<![\w:.])lerp\s*\(")
 
@@ -203,8 +203,8 @@ def test_every_nerfacc_kernel_call_gets_the_patched_build(fake_cuda, tmp_path):
     built = types.SimpleNamespace(traverse_grids=lambda *args: ("traversed", args))
     calls = []
     fake_cuda.setattr(nerfacc_kernels, "build_patched", lambda: calls.append(1) or built)
-    backend = sys.modules[nerfacc_kernels.BACKEND]
-    assert isinstance(backend, nerfacc_kernels._LazyBackend), "installed at plugin import, nothing built yet"
+    backend = sys.modules[nerfacc_backend.BACKEND]
+    assert isinstance(backend, nerfacc_backend.LazyBackend), "installed at plugin import, nothing built yet"
     assert nerfacc.cuda.traverse_grids(1, 2) == ("traversed", (1, 2))
     assert nerfacc.cuda.traverse_grids(3) == ("traversed", (3,))
     assert calls == [1], "built once per process"
