@@ -8,6 +8,8 @@ only ever read.
 from __future__ import annotations
 
 import copy
+import warnings
+import zipfile
 from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import Dict, Optional
@@ -19,6 +21,7 @@ from nerfstudio.models.instant_ngp import InstantNGPModelConfig
 from nerfstudio.models.nerfacto import NerfactoModelConfig
 from torch import Tensor
 
+from sked_ns.errors import SkedFileNotFoundError, SkedUserError
 from sked_ns.sketches import DataparserTransform
 
 # What the edit decides, not the base; every other field of the base's model config is copied (its architecture).
@@ -88,23 +91,55 @@ class BaseScene:
         return self.config.pipeline.model
 
 
+def checkpoint_step(checkpoint: Path) -> int:
+    """The step in a nerfstudio checkpoint's name (step-000000020.ckpt)."""
+    return int(checkpoint.stem.split("-")[1])
+
+
+def checkpoint_damage(checkpoint: Path) -> Optional[str]:
+    """Why a checkpoint cannot be read, or None: a file cut short by a kill is empty or lacks the zip index
+    that torch.save writes last. Reads the file once (CRCs), without unpickling it."""
+    try:
+        if checkpoint.stat().st_size == 0:
+            return "it is empty (0 bytes)"
+        with open(checkpoint, "rb") as file:
+            if file.read(4) != b"PK\x03\x04":  # not torch's zip format: torch.load judges it
+                return None
+        with zipfile.ZipFile(checkpoint) as archive:
+            corrupt = archive.testzip()
+    except (OSError, zipfile.BadZipFile, EOFError) as error:
+        return f"it is truncated or unreadable ({error})"
+    return f"its entry {corrupt} is corrupt" if corrupt else None
+
+
 def _latest_checkpoint(models_dir: Path, step: Optional[int]) -> Path:
-    checkpoints = sorted(models_dir.glob("step-*.ckpt"))
+    """The checkpoint of --load-step, else the latest intact one: a broken newer one is named and skipped."""
+    checkpoints = sorted(models_dir.glob("step-*.ckpt"), key=checkpoint_step, reverse=True)
     if not checkpoints:
-        raise FileNotFoundError(f"{models_dir}: no step-*.ckpt checkpoint here. Point --load-dir at a trained run.")
-    if step is None:
-        return max(checkpoints, key=lambda path: int(path.stem.split("-")[1]))
-    chosen = models_dir / f"step-{step:09d}.ckpt"
-    if not chosen.exists():
-        raise FileNotFoundError(f"{chosen}: no checkpoint for --load-step {step}.")
-    return chosen
+        raise SkedFileNotFoundError(f"{models_dir}: no step-*.ckpt checkpoint here. Point --load-dir at a trained run.")
+    if step is not None:
+        chosen = models_dir / f"step-{step:09d}.ckpt"
+        if not chosen.exists():
+            raise SkedFileNotFoundError(f"{chosen}: no checkpoint for --load-step {step}.")
+        damage = checkpoint_damage(chosen)
+        if damage:
+            raise SkedUserError(f"{chosen}: cannot use this checkpoint: {damage}. Leave out --load-step for the "
+                                "latest intact one.")
+        return chosen
+    for checkpoint in checkpoints:
+        damage = checkpoint_damage(checkpoint)
+        if damage is None:
+            return checkpoint
+        # A kill while saving (a run older than atomic checkpoints, or a full disk) leaves the last one cut short.
+        warnings.warn(f"{checkpoint}: skipped, {damage}; using an older checkpoint.", stacklevel=3)
+    raise SkedUserError(f"{models_dir}: every checkpoint here is broken (empty or truncated); nothing to load.")
 
 
 def resolve_base(load_dir: Path, step: Optional[int] = None) -> BaseScene:
     """Accept `<run>`, `<run>/nerfstudio_models` or a `.ckpt` file; read and check config.yml."""
     path = Path(load_dir).expanduser()
     if not path.exists():
-        raise FileNotFoundError(f"--load-dir {path}: no such file or folder.")
+        raise SkedFileNotFoundError(f"--load-dir {path}: no such file or folder.")
     if path.is_file():
         models_dir, checkpoint = path.parent, path
     elif (path / "config.yml").exists():
@@ -114,21 +149,21 @@ def resolve_base(load_dir: Path, step: Optional[int] = None) -> BaseScene:
     run_dir = models_dir.parent
     config_path = run_dir / "config.yml"
     if not config_path.exists():
-        raise FileNotFoundError(
+        raise SkedFileNotFoundError(
             f"{config_path}: missing. --load-dir must be a nerfstudio run folder (with config.yml) or its "
             "nerfstudio_models folder; the base's config.yml says which model it is."
         )
     if checkpoint is None:
         if not models_dir.is_dir():
-            raise FileNotFoundError(f"{models_dir}: missing; the run at {run_dir} has no saved checkpoints.")
+            raise SkedFileNotFoundError(f"{models_dir}: missing; the run at {run_dir} has no saved checkpoints.")
         checkpoint = _latest_checkpoint(models_dir, step)
     try:
         config = yaml.load(config_path.read_text(), Loader=yaml.Loader)
         method, model_config = config.method_name, config.pipeline.model
     except Exception as error:  # yaml of nerfstudio configs imports arbitrary modules
-        raise ValueError(f"{config_path}: cannot read this nerfstudio config ({error}).") from error
+        raise SkedUserError(f"{config_path}: cannot read this nerfstudio config ({error}).") from error
     if base_family(model_config) is None:
-        raise ValueError(
+        raise SkedUserError(
             f"{config_path}: the base was trained with '{method}' ({type(model_config).__name__}); sked edits "
             "nerfacto (also -big, -huge) and instant-ngp (also -bounded) scenes, and its own edits."
         )
@@ -143,7 +178,7 @@ def read_model_state(checkpoint: Path) -> Dict[str, Tensor]:
         state = torch.load(checkpoint, map_location="cpu")
         pipeline = state["pipeline"]
     except Exception as error:
-        raise ValueError(f"{checkpoint}: not a readable nerfstudio checkpoint ({error}).") from error
+        raise SkedUserError(f"{checkpoint}: not a readable nerfstudio checkpoint ({error}).") from error
     prefix = "_model."
     model_state = {}
     for key, value in pipeline.items():
@@ -151,7 +186,7 @@ def read_model_state(checkpoint: Path) -> Dict[str, Tensor]:
         if key.startswith(prefix):
             model_state[key[len(prefix) :]] = value
     if not model_state:
-        raise ValueError(f"{checkpoint}: holds no model weights (no '_model.' keys).")
+        raise SkedUserError(f"{checkpoint}: holds no model weights (no '_model.' keys).")
     return model_state
 
 
@@ -170,20 +205,28 @@ def dataparser_name(dataparser_config) -> str:
     return type(dataparser_config).__name__
 
 
+def dataparser_command(base: BaseScene) -> str:
+    """The dataparser subcommand and --data the base was trained with, as the user types them."""
+    datamanager = base.config.pipeline.datamanager
+    dataparser = datamanager.dataparser
+    data = getattr(datamanager, "data", None) or getattr(dataparser, "data", None) or "<the base data>"
+    return f"`{dataparser_name(dataparser)} --data {data}`"
+
+
 def check_same_frame(base: BaseScene, here: DataparserTransform) -> None:
     """The edit's --data and dataparser must put the scene where the base's field has it: another
     orientation, centring or scale would query the base at the wrong points, silently."""
     path = base.run_dir / "dataparser_transforms.json"
     if not path.exists():  # nerfstudio writes it for every run; without it there is nothing to compare
+        warnings.warn(f"{path}: missing, so the frame of --data and its dataparser cannot be checked against the "
+                      f"base's; make sure they are the base's own: {dataparser_command(base)}.", stacklevel=2)
         return
     saved = DataparserTransform.from_json(path)
     if np.allclose(saved.transform, here.transform, atol=1e-5) and abs(saved.scale - here.scale) <= 1e-5 * saved.scale:
         return
-    dataparser = base.config.pipeline.datamanager.dataparser
-    raise ValueError(
+    raise SkedUserError(
         f"{path}: the base was trained in another frame than --data and its dataparser give here (base scale "
         f"{saved.scale:.6g}, translation {np.round(saved.transform[:, 3], 4).tolist()}; here scale {here.scale:.6g}, "
         f"translation {np.round(here.transform[:, 3], 4).tolist()}). Pass the base's dataparser and its settings: "
-        f"`{dataparser_name(dataparser)} --data {getattr(dataparser, 'data', '<the base data>')}` "
-        f"(see {base.run_dir / 'config.yml'}, pipeline.datamanager.dataparser)."
+        f"{dataparser_command(base)} (see {base.run_dir / 'config.yml'}, pipeline.datamanager.dataparser)."
     )

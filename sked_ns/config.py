@@ -96,3 +96,9 @@ def method_from_preset(name: str) -> MethodSpecification:
 sked_method = method_from_preset("sked")
 sked_fast = method_from_preset("sked-fast")
 sked_quality = method_from_preset("sked-quality")
+PRESET_METHODS = {"sked": sked_method, "sked-fast": sked_fast, "sked-quality": sked_quality}
+
+
+def preset_config(method_name: str) -> SkedTrainerConfig:
+    """A fresh copy of the preset `ns-train <method_name>` starts from (the `sked` one for any other name)."""
+    return copy.deepcopy(PRESET_METHODS.get(method_name, sked_method).config)

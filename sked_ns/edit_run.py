@@ -45,6 +45,18 @@ def edit_config(
     return config
 
 
+def resume_config(run: Path, output_dir: Optional[Path] = None, *, iterations: Optional[int] = None) -> SkedTrainerConfig:
+    """The `ns-train sked --load-dir RUN [--output-dir OUT] [--max-num-iterations N]` config: the preset's
+    defaults but for what is typed; resolving it takes everything else from the saved edit."""
+    config: SkedTrainerConfig = copy.deepcopy(sked_method.config)
+    config.load_dir = Path(run)
+    if output_dir is not None:
+        config.output_dir = Path(output_dir)
+    if iterations is not None:
+        config.max_num_iterations = iterations
+    return config
+
+
 def run_edit(config: SkedTrainerConfig):
     """What `ns-train` does with a config: seed, save it, set up the trainer, train. Returns the trainer."""
     import random

@@ -4,12 +4,16 @@ nerfstudio's `--load-dir` means "resume this run": it restores the optimisers an
 An edit instead starts at step 0 with fresh optimisers from the base's weights, so the base
 is resolved here, before the config is saved: its architecture is copied into the edit's
 model config, its checkpoint recorded, and `load_dir` cleared. Pointing `--load-dir` at an
-earlier SKED run resumes it; add `--progressive True` to edit that result again instead.
+earlier SKED run resumes it from its saved config.yml (resume.py); add `--progressive True` to
+edit that result again instead. Checkpoints are written so that a kill cannot leave a broken one.
 """
 
 from __future__ import annotations
 
 import contextlib
+import os
+import pickle
+import warnings
 from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Optional, Type
@@ -17,10 +21,13 @@ from typing import Optional, Type
 import torch
 from nerfstudio.engine.trainer import Trainer, TrainerConfig
 from nerfstudio.models.instant_ngp import InstantNGPModelConfig
+from nerfstudio.utils.decorators import check_main_thread
 from nerfstudio.utils.rich_utils import CONSOLE
 
-from sked_ns.base_scene import copy_base_architecture, resolve_base
+from sked_ns.base_scene import BaseScene, checkpoint_step, copy_base_architecture, dataparser_command, resolve_base
 from sked_ns.compat import train_loop_adds_start_step
+from sked_ns.errors import SkedFileNotFoundError, SkedUserError, check_writable_folder
+from sked_ns.resume import resumed_config, typed_settings
 from sked_ns.safe_step import GuardedGradScaler, GuardedOptimizers, StepGuard
 from sked_ns.core import SkedOptions
 from sked_ns.nerfacto_model import SkedNerfactoModelConfig
@@ -38,39 +45,93 @@ class SkedTrainerConfig(TrainerConfig):
 
     def save_config(self) -> None:
         resolve_edit(self)  # before saving, so config.yml describes the edit's real model
+        # Before anything is written, not when the first checkpoint is due.
+        check_writable_folder(self.get_base_dir(), "--output-dir", self.output_dir)
+        check_writable_folder(self.get_checkpoint_dir(), "--output-dir", self.output_dir)
         super().save_config()
 
 
 def resolve_edit(config: SkedTrainerConfig) -> None:
     """Fill the model config from --load-dir and the aliases; safe to call twice."""
     check_options(config.pipeline.model, config.pipeline.datamanager)  # bad values refused before anything is written
-    # Learning rates decay to 0.1x by the end of this edit (docs/method.md, Optimisation), however long --max-num-iterations makes it.
-    for optimizer in config.optimizers.values():
-        if hasattr(optimizer.get("scheduler"), "max_steps"):
-            optimizer["scheduler"].max_steps = config.max_num_iterations
+    check_run_settings(config)
     model = config.pipeline.model
     if config.sketches is not None:
         model.sketches = config.sketches
     if config.load_dir is None:
         if model.base_checkpoint is None:
-            raise ValueError("ns-train sked needs the scene to edit: --load-dir <base run>/nerfstudio_models.")
-        return
-    base = resolve_base(config.load_dir, config.load_step)
-    if base.family == "sked" and not config.progressive:
-        # Resume: same architecture, base and sketch set as the interrupted run.
-        previous = base.model_config
-        model = config.pipeline.model = edit_model_config(model, previous)
-        model.base_checkpoint = previous.base_checkpoint
-        model.sketches = model.sketches or previous.sketches
-        model.prompt = model.prompt or previous.prompt
-        config.load_dir = base.checkpoint.parent
-        CONSOLE.print(f"Resuming the SKED edit {base.run_dir} from {base.checkpoint.name}")
-        return
-    model = config.pipeline.model = edit_model_config(model, base.model_config)
+            raise SkedUserError("ns-train sked needs the scene to edit: --load-dir <base run>/nerfstudio_models.")
+    else:
+        base = resolve_base(config.load_dir, config.load_step)
+        if base.family == "sked" and not config.progressive:
+            resume_edit(config, base)
+        else:
+            start_edit(config, base)
+        check_data(config, base)
+    # Learning rates decay to 0.1x by the end of this edit (docs/method.md, Optimisation), however long --max-num-iterations makes it.
+    for optimizer in config.optimizers.values():
+        if hasattr(optimizer.get("scheduler"), "max_steps"):
+            optimizer["scheduler"].max_steps = config.max_num_iterations
+
+
+def check_run_settings(config: TrainerConfig) -> None:
+    """The run's length and saving intervals, named by flag (nerfstudio divides by the total, so 0 would crash)."""
+    total = config.max_num_iterations
+    if isinstance(total, bool) or not isinstance(total, int) or total < 1:
+        raise SkedUserError(f"--max-num-iterations {total!r}: an edit needs at least 1 iteration (the paper's is "
+                            "10,000; sked-fast 3,000).")
+    intervals = {"--steps-per-save": config.steps_per_save, "--steps-per-eval-batch": config.steps_per_eval_batch,
+                 "--steps-per-eval-image": config.steps_per_eval_image,
+                 "--steps-per-eval-all-images": config.steps_per_eval_all_images,
+                 "--logging.steps-per-log": config.logging.steps_per_log}
+    bad = [f"{name} {value!r}" for name, value in intervals.items()
+           if isinstance(value, bool) or not isinstance(value, int) or value < 0]
+    if bad:
+        raise SkedUserError(f"{', '.join(bad)}: a number of iterations between two events, a whole number >= 0 "
+                            "(0 turns the event off).")
+    if config.steps_per_save == 0:
+        warnings.warn("--steps-per-save 0: the edit is saved only when it ends, so a crash or kill loses all of it.",
+                      stacklevel=3)
+
+
+def resume_edit(config: SkedTrainerConfig, base: BaseScene) -> None:
+    """Continue the interrupted edit: its saved config, the settable flags typed now, from its latest intact checkpoint."""
+    from sked_ns.config import preset_config  # sked_ns.config builds its presets from this module
+
+    resumed_config(config, base.config, preset_config(config.method_name), base.run_dir)
+    step = checkpoint_step(base.checkpoint)
+    if config.max_num_iterations <= step + 1:
+        typed = "max_num_iterations" in typed_settings(config, base.config)
+        raise SkedUserError(
+            (f"--max-num-iterations {config.max_num_iterations}: " if typed else f"--load-dir {base.run_dir}: ")
+            + f"the edit was saved after {step + 1} of its {base.config.max_num_iterations} iterations "
+            f"({base.checkpoint.name}), so nothing is left to run. Pass --max-num-iterations above {step + 1} to "
+            "continue it, or --progressive True to edit its result again."
+        )
+    config.load_dir, config.load_step = base.checkpoint.parent, step  # this checkpoint, not a newer broken one
+    CONSOLE.print(f"Resuming the SKED edit {base.run_dir} from {base.checkpoint.name} to "
+                  f"{config.max_num_iterations} iterations")
+
+
+def start_edit(config: SkedTrainerConfig, base: BaseScene) -> None:
+    """A new edit of `base`: the model shaped like it, starting at step 0 from its weights."""
+    model = config.pipeline.model = edit_model_config(config.pipeline.model, base.model_config)
     model.base_checkpoint = base.checkpoint
     config.load_dir = None  # the base is not a run to resume: fresh optimisers, step 0
     config.load_step = None
     CONSOLE.print(f"Editing the {base.method} scene {base.run_dir} ({base.checkpoint.name})")
+
+
+def check_data(config: TrainerConfig, base: BaseScene) -> None:
+    """--data and its dataparser are given and exist (nerfstudio would look for ./transforms.json)."""
+    datamanager = config.pipeline.datamanager
+    data = config.data or datamanager.data or datamanager.dataparser.data
+    if data is None or Path(data) == Path():
+        raise SkedUserError(f"no --data: an edit reads the base's images through the base's dataparser, typed after "
+                            f"every other flag: {dataparser_command(base)} (from {base.run_dir / 'config.yml'}).")
+    if not Path(data).exists():
+        raise SkedFileNotFoundError(f"--data {data}: no such file or folder. The base was trained with "
+                                    f"{dataparser_command(base)}.")
 
 
 def edit_model_config(model, base_model_config):
@@ -122,7 +183,14 @@ class SkedTrainer(Trainer):
             # Not "training from scratch": the model already holds the base's weights.
             CONSOLE.print(f"Edit starts at step 0 from the base {self.config.pipeline.model.base_checkpoint}")
             return
-        super()._load_checkpoint()
+        try:
+            super()._load_checkpoint()
+        except (EOFError, pickle.UnpicklingError, RuntimeError) as error:
+            if isinstance(error, RuntimeError) and "PytorchStreamReader" not in str(error):
+                raise
+            path = self.config.load_checkpoint or Path(self.config.load_dir) / f"step-{self.config.load_step:09d}.ckpt"
+            raise SkedUserError(f"{path}: cannot read this checkpoint ({error}). Resume from an older one with "
+                                "--load-step N.") from error
 
     def train(self) -> None:
         # An edit's length is its total: nerfstudio 1.1.5 would run max_num_iterations more steps after a resume.
@@ -150,13 +218,46 @@ class SkedTrainer(Trainer):
         self.skipped_steps += 1
         CONSOLE.print(f"[yellow]step {step}: non-finite {', '.join(names)}; update skipped[/yellow]")
 
+    @check_main_thread
     def save_checkpoint(self, step: int) -> None:
-        """Never write a checkpoint holding NaN or inf weights."""
+        """Never write a checkpoint holding NaN or inf weights, nor one that a kill could leave half-written:
+        nerfstudio's checkpoint is written in a staging folder beside, synced, then renamed into place."""
         bad = [name for name, p in self.pipeline.model.named_parameters() if not torch.isfinite(p).all()]
         if bad:
             CONSOLE.print(f"[red]step {step}: not saving a checkpoint with non-finite weights ({bad[:3]})[/red]")
             return
-        super().save_checkpoint(step)
+        checkpoint_dir = self.checkpoint_dir
+        staging = checkpoint_dir.parent / f".{checkpoint_dir.name}.partial"  # same file system: the rename is atomic
+        path = checkpoint_dir / f"step-{step:09d}.ckpt"
+        try:
+            self.checkpoint_dir = staging
+            super().save_checkpoint(step)
+            checkpoint_dir.mkdir(parents=True, exist_ok=True)
+            publish_atomically(staging / path.name, path)
+        except (OSError, RuntimeError) as error:
+            raise SkedUserError(f"{path}: cannot write the checkpoint ({error}); check the free space and "
+                                "--output-dir.") from error
+        finally:
+            self.checkpoint_dir = checkpoint_dir
+        with contextlib.suppress(OSError):
+            staging.rmdir()
+        if self.config.save_only_latest_checkpoint:
+            for older in checkpoint_dir.glob("*.ckpt"):
+                if older != path:
+                    older.unlink()
+
+
+def publish_atomically(written: Path, path: Path) -> None:
+    """Move a finished file to `path` so that readers see the old state or the whole new file, even after a kill."""
+    with open(written, "rb") as file:
+        os.fsync(file.fileno())  # the data is on disk before the name points at it
+    os.replace(written, path)
+    with contextlib.suppress(OSError):  # and the new name survives a power cut (not every file system allows it)
+        folder = os.open(path.parent, os.O_RDONLY)
+        try:
+            os.fsync(folder)
+        finally:
+            os.close(folder)
 
 
 @contextlib.contextmanager

@@ -1,0 +1,211 @@
+"""Resuming continues the saved edit; checkpoints survive a kill; run settings are checked before anything runs.
+
+Unit tests on configs and small files; the real resumed edit is in test_edit.py.
+"""
+
+from __future__ import annotations
+
+import copy
+import warnings
+from pathlib import Path
+from types import SimpleNamespace
+
+import pytest
+import torch
+import yaml
+
+from sked_ns.base_scene import resolve_base
+from sked_ns.config import preset_config
+from sked_ns.demo.reference_guidance import ReferenceGuidanceConfig
+from sked_ns.edit_run import resume_config
+from sked_ns.errors import SkedUserError, check_writable_folder
+from sked_ns.resume import resumed_config
+from sked_ns.trainer import SkedTrainer, check_run_settings
+
+
+def saved_edit() -> object:
+    """The config.yml of a short reference-guided CPU edit, as `ns-train sked` saved it."""
+    config = preset_config("sked")
+    config.pipeline.model.guidance = ReferenceGuidanceConfig()
+    config.pipeline.model.prompt = "a hat"
+    config.pipeline.model.beta = 0.05
+    config.pipeline.model.guidance_resolution = 24
+    config.pipeline.model.sketches = Path("/sketches/hat")
+    config.data = config.pipeline.datamanager.data = Path("/data/scene")  # the --data alias, as ns-train sets it
+    config.max_num_iterations, config.steps_per_save = 60, 20
+    config.machine.device_type, config.vis, config.mixed_precision = "cpu", "tensorboard", False
+    config.output_dir, config.experiment_name, config.timestamp = Path("/runs"), "scene", "2026-01-01_000000"
+    return yaml.load(yaml.dump(config), Loader=yaml.Loader)  # as read back from the run's config.yml
+
+
+def resume(config, saved, argv=()):
+    resumed_config(config, saved, preset_config("sked"), Path("/runs/scene/sked/2026-01-01_000000"), argv=list(argv))
+    return config
+
+
+def test_resume_takes_the_saved_edit_not_the_defaults():
+    config = resume_config(Path("/runs/scene/sked/2026-01-01_000000"), Path("/elsewhere"))
+    config.timestamp = "now"
+    saved = saved_edit()
+    saved.method_name = "sked-fast"  # resumed with `ns-train sked`: still the sked-fast edit, in its folder
+    resume(config, saved)
+    model = config.pipeline.model
+    assert isinstance(model.guidance, ReferenceGuidanceConfig) and model.prompt == "a hat"  # not carving
+    assert (model.beta, model.guidance_resolution, model.sketches) == (0.05, 24, Path("/sketches/hat"))
+    assert (config.max_num_iterations, config.steps_per_save, config.machine.device_type) == (60, 20, "cpu")
+    assert config.pipeline.datamanager.data == Path("/data/scene")
+    # This run's own: where it writes (typed) and its timestamp, beside the saved edit's experiment.
+    assert (config.output_dir, config.experiment_name, config.timestamp) == (Path("/elsewhere"), "scene", "now")
+    assert config.method_name == "sked-fast"
+    assert config.load_dir == Path("/runs/scene/sked/2026-01-01_000000")
+
+
+def test_resume_takes_the_settable_flags():
+    config = resume_config(Path("/run"), iterations=100)
+    config.viewer.quit_on_train_completion, config.vis = True, "viewer+tensorboard"
+    config.pipeline.datamanager.dataparser.data = Path("/data/moved")
+    config.pipeline.model.beta = 0.05  # typed, but the saved edit's value: no change
+    resume(config, saved_edit())
+    assert (config.max_num_iterations, config.vis, config.viewer.quit_on_train_completion) == (100, "viewer+tensorboard", True)
+    # Typed data replace the saved ones whole: the saved --data alias would otherwise win over the typed dataparser.
+    datamanager = config.pipeline.datamanager
+    assert (config.data, datamanager.data, datamanager.dataparser.data) == (None, None, Path("/data/moved"))
+    assert config.pipeline.model.prompt == "a hat"
+
+
+def test_resume_refuses_what_would_change_the_edit():
+    config = resume_config(Path("/run"))
+    config.sketches = Path("/sketches/other")
+    config.pipeline.model.beta = 0.5
+    config.pipeline.model.lambda_pres = 0.0
+    with pytest.raises(SkedUserError) as refused:
+        resume(config, saved_edit())
+    message = str(refused.value)
+    for typed in ("--sketches", "--pipeline.model.beta: 0.5 here, 0.05 in the saved edit", "--pipeline.model.lambda-pres",
+                  "--progressive True"):
+        assert typed in message, message
+    # A new guidance is one change, named once (not with each of its settings).
+    config = resume_config(Path("/run"))
+    config.pipeline.model.guidance = copy.deepcopy(preset_config("sked").pipeline.model.guidance)
+    config.pipeline.model.guidance.guidance_scale = 7.5
+    saved = saved_edit()
+    with pytest.raises(SkedUserError, match=r"pipeline\.model\.guidance \(a subcommand\): StableDiffusionGuidanceConfig here, "
+                                            r"ReferenceGuidanceConfig") as refused:
+        resume(config, saved)
+    assert "guidance-scale" not in str(refused.value)
+
+
+def test_a_flag_typed_at_its_default_value_counts_on_the_ns_train_command_line():
+    config = resume_config(Path("/run"))  # beta is the preset's 0.025 whether typed or not
+    resume(copy.deepcopy(config), saved_edit(), argv=["pytest"])  # not ns-train: the saved 0.05 is kept
+    with pytest.raises(SkedUserError, match=r"--pipeline\.model\.beta: 0\.025 here, 0\.05"):
+        resume(config, saved_edit(), argv=["/venv/bin/ns-train", "sked", "--load-dir", "/run",
+                                           "--pipeline.model.beta", "0.025"])
+
+
+@pytest.mark.parametrize("iterations", [0, -5])
+def test_iterations_below_one_are_refused(iterations):
+    config = preset_config("sked")
+    config.max_num_iterations = iterations
+    with pytest.raises(SkedUserError, match=f"--max-num-iterations {iterations}: an edit needs at least 1"):
+        check_run_settings(config)
+
+
+def test_save_and_eval_intervals_are_checked():
+    config = preset_config("sked")
+    config.steps_per_save, config.logging.steps_per_log = -1, -2
+    with pytest.raises(SkedUserError, match=r"--steps-per-save -1, --logging.steps-per-log -2: .*whole number >= 0"):
+        check_run_settings(config)
+    config.steps_per_save, config.logging.steps_per_log = 0, 10
+    with pytest.warns(UserWarning, match="--steps-per-save 0: the edit is saved only when it ends"):
+        check_run_settings(config)
+
+
+# ---- checkpoints ----------------------------------------------------------------------------
+
+
+def fake_run(folder: Path, steps) -> Path:
+    """A run folder (config.yml of a SKED edit) with a tiny intact checkpoint per step."""
+    (folder / "nerfstudio_models").mkdir(parents=True)
+    (folder / "config.yml").write_text(yaml.dump(preset_config("sked")))
+    for step in steps:
+        torch.save({"step": step, "pipeline": {"_model.field.w": torch.full((256,), float(step))}},
+                   folder / "nerfstudio_models" / f"step-{step:09d}.ckpt")
+    return folder
+
+
+def test_a_checkpoint_cut_short_by_a_kill_is_named_and_skipped(tmp_path):
+    run = fake_run(tmp_path / "run", [10, 20])
+    models = run / "nerfstudio_models"
+    intact = (models / "step-000000020.ckpt").read_bytes()
+    (models / "step-000000030.ckpt").write_bytes(intact[: len(intact) // 2])  # killed mid-write
+    (models / "step-000000040.ckpt").write_bytes(b"")  # killed before the first byte
+    with pytest.warns(UserWarning) as caught:
+        assert resolve_base(run).checkpoint == models / "step-000000020.ckpt"
+    skipped = [str(w.message) for w in caught]
+    assert any("step-000000040.ckpt: skipped, it is empty (0 bytes)" in m for m in skipped), skipped
+    assert any("step-000000030.ckpt: skipped, it is truncated" in m for m in skipped), skipped
+    with pytest.raises(SkedUserError, match=r"step-000000030.ckpt: cannot use this checkpoint: it is truncated"):
+        resolve_base(run, step=30)  # a step the user chose is not swapped for another
+    for path in models.glob("*.ckpt"):
+        path.write_bytes(b"")
+    with pytest.raises(SkedUserError, match="every checkpoint here is broken"), warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        resolve_base(run)
+
+
+def checkpointing_trainer(run: Path, save_only_latest: bool = False) -> SkedTrainer:
+    """Just what SkedTrainer.save_checkpoint reads, around a tiny model."""
+    trainer = SkedTrainer.__new__(SkedTrainer)
+    pipeline = torch.nn.Module()
+    pipeline.model = torch.nn.Linear(4, 4)
+    trainer.pipeline = pipeline
+    trainer.optimizers = SimpleNamespace(optimizers={}, schedulers={})
+    trainer.grad_scaler = torch.amp.GradScaler("cpu", enabled=False)
+    trainer.checkpoint_dir = run / "nerfstudio_models"
+    trainer.config = SimpleNamespace(save_only_latest_checkpoint=save_only_latest)
+    return trainer
+
+
+def test_a_kill_while_saving_leaves_the_last_checkpoint_intact(tmp_path, monkeypatch):
+    run = fake_run(tmp_path / "run", [])
+    trainer = checkpointing_trainer(run)
+    trainer.save_checkpoint(10)
+    assert [p.name for p in (run / "nerfstudio_models").iterdir()] == ["step-000000010.ckpt"]
+    assert not (run / ".nerfstudio_models.partial").exists()
+
+    def killed_half_way(state, path, *args, **kwargs):
+        Path(path).write_bytes(b"PK\x03\x04 half a checkpoint")
+        raise KeyboardInterrupt  # the process dies here
+
+    monkeypatch.setattr(torch, "save", killed_half_way)
+    with pytest.raises(KeyboardInterrupt):
+        trainer.save_checkpoint(20)
+    # The checkpoint folder holds only whole checkpoints: nerfstudio's own loaders list it too.
+    assert [p.name for p in (run / "nerfstudio_models").iterdir()] == ["step-000000010.ckpt"]
+    assert resolve_base(run).checkpoint.name == "step-000000010.ckpt"
+    monkeypatch.undo()
+    trainer.config.save_only_latest_checkpoint = True
+    trainer.save_checkpoint(30)  # the next save replaces the stale partial file
+    assert [p.name for p in (run / "nerfstudio_models").iterdir()] == ["step-000000030.ckpt"]
+    assert torch.load(run / "nerfstudio_models" / "step-000000030.ckpt")["step"] == 30
+
+
+def test_an_unwritable_checkpoint_folder_names_the_path(tmp_path):
+    (tmp_path / "file").write_text("")
+    trainer = checkpointing_trainer(tmp_path / "file" / "run")
+    with pytest.raises(SkedUserError, match=r"file/run/nerfstudio_models/step-000000005.ckpt: cannot write"):
+        trainer.save_checkpoint(5)
+
+
+def test_output_folder_under_a_file_is_refused_with_its_flag(tmp_path, monkeypatch):
+    (tmp_path / "file").write_text("")
+    with pytest.raises(SkedUserError, match=r"--output-dir .*file/sub: cannot write there \(the run folder "):
+        check_writable_folder(tmp_path / "file" / "sub" / "exp" / "sked", "--output-dir", tmp_path / "file" / "sub")
+    # Permission bits do not stop root: a refused write is what counts.
+    def refuse(*args, **kwargs):
+        raise PermissionError(13, "Permission denied", str(tmp_path / "ro" / "probe"))
+
+    monkeypatch.setattr(Path, "write_bytes", refuse)
+    with pytest.raises(SkedUserError, match=r"--output-dir .*ro: cannot write there: Permission denied"):
+        check_writable_folder(tmp_path / "ro", "--output-dir")
