@@ -32,6 +32,7 @@ import json
 import os
 import platform
 import resource
+import shlex
 import subprocess
 import sys
 import tempfile
@@ -181,9 +182,9 @@ class StepClock:
 
 
 def edit_arguments(base: Path, work: Path, sd: Path, name: str, iterations: int, size: str, device: str,
-                   render_resolution: Optional[int] = None) -> List[str]:
+                   render_resolution: Optional[int] = None, extra: str = "") -> List[str]:
     """The user's command line: the paper's settings from the preset; small renders only at --size tiny
-    or where RENDER_RESOLUTION asks (the random and sketch views' size)."""
+    or where RENDER_RESOLUTION asks (the random and sketch views' size); EXTRA: more `ns-train sked` flags."""
     arguments = [
         "--load-dir", str(base), "--sketches", str(work / "sketches"), "--prompt", PROMPT,
         "--max-num-iterations", str(iterations),
@@ -197,6 +198,7 @@ def edit_arguments(base: Path, work: Path, sd: Path, name: str, iterations: int,
     if render_resolution:
         arguments += ["--pipeline.model.guidance-resolution", str(render_resolution),
                       "--pipeline.model.silhouette-resolution", str(render_resolution)]
+    arguments += shlex.split(extra)
     return arguments + guidance + ["nerfstudio-data", "--data", str(work / "data")]
 
 
@@ -206,7 +208,8 @@ def run_edit(check: Check, key: str, base: Path, work: Path, sd: Path, args) -> 
     entry: Dict = {}
     check.result[key] = entry
     reset_peak(device)
-    config = ns_train_sked(edit_arguments(base, work, sd, key, args.iterations, args.size, device, args.render_resolution))
+    config = ns_train_sked(edit_arguments(base, work, sd, key, args.iterations, args.size, device,
+                                          args.render_resolution, args.edit_flags))
     start = time.perf_counter()
     trainer = config.setup(local_rank=0, world_size=1)
     trainer.setup()
@@ -443,6 +446,8 @@ def main() -> None:
                         help="random and sketch views' size (default: the preset's 128 at full, 16 at tiny); on the "
                              "CPU, 128 px renders of the full nerfacto take over 18 GB (torch hash grids, no tcnn)")
     parser.add_argument("--profile-steps", type=int, default=None)
+    parser.add_argument("--edit-flags", default="",
+                        help="more `ns-train sked` flags for both edits, e.g. \"--pipeline.model.lambda-photo 0\"")
     parser.add_argument("--budget-s", type=float, default=None,
                         help="skip later phases past this much time (default: 540 s on CUDA, a lent GPU's slot; none on CPU)")
     parser.add_argument("--skip", default="", help="comma-separated phases to skip (e.g. ngp,tests)")
@@ -464,7 +469,7 @@ def main() -> None:
     check.result.update(
         description="benchmarks/gpu_check.py: real `ns-train sked --prompt` edits with SD v1.x's "
                     f"{'full' if full else 'tiny'} architecture and RANDOM weights (honest timings, meaningless images)",
-        settings={"size": args.size, "iterations_timed": args.iterations, "warmup": args.warmup,
+        settings={"size": args.size, "edit_flags": args.edit_flags, "iterations_timed": args.iterations, "warmup": args.warmup,
                   "guidance_resolution": args.render_resolution or (128 if full else 16), "sd_image_size": 512 if full else 32,
                   "guidance_scale": 100, "precision": "fp16 autocast, compiled UNet and VAE encoder" if args.device == "cuda"
                   else "fp32, eager", "prompt": PROMPT},

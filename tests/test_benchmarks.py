@@ -182,6 +182,10 @@ def test_benchmark_command_lines_parse_as_ns_train_parses_them(tmp_path):
     guidance = config.pipeline.model.guidance
     assert type(guidance).__name__ == "StableDiffusionGuidanceConfig"
     assert guidance.model == str(tmp_path / "sd") and guidance.image_size == 32 and config.max_num_iterations == 7
+    # Full size at smaller renders (the CPU rehearsal): SD keeps its 512 px input, the views shrink.
+    arguments = gpu_check.edit_arguments(tmp_path / "base", tmp_path, tmp_path / "sd", "nerfacto", 3, "full", "cpu", 64)
+    model = tyro.cli(AnnotatedBaseConfigUnion, args=["sked", *arguments]).pipeline.model
+    assert (model.guidance_resolution, model.silhouette_resolution, model.guidance.image_size) == (64, 64, 512)
 
 
 def test_sketch_view_fill_credits_a_correct_edit_that_kept_content_hides():
