@@ -316,6 +316,16 @@ def test_an_empty_prompt_is_refused_and_says_how_to_carve(prompt):
     check_guidance(StableDiffusionGuidanceConfig(), None)  # carving, as asked
 
 
+def test_the_pipeline_refuses_an_empty_prompt_before_reading_any_data(tmp_path):
+    from sked_ns.nerfacto_model import SkedNerfactoModelConfig
+    from sked_ns.pipeline import SkedPipelineConfig
+
+    # An unset shell variable ($PROMPT) must not carve the sketched region away; nothing here exists to be read.
+    model = SkedNerfactoModelConfig(sketches=tmp_path / "no-sketches", prompt="")
+    with pytest.raises(SkedOptionError, match="To carve the sketched region away, leave out --prompt"):
+        SkedPipelineConfig(model=model).setup(device="cpu")
+
+
 def test_a_prompt_given_to_guidance_without_prompts_is_warned_about():
     with pytest.warns(SkedOptionWarning, match=r"--prompt 'a hat' is ignored.*guidance:reference"):
         check_guidance(guidance_config("reference"), "a hat")
