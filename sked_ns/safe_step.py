@@ -102,7 +102,7 @@ class GuardedGradScaler(torch.amp.GradScaler):
 
 
 class GuardedOptimizers:
-    """nerfstudio's Optimizers (every attribute passed through), whose schedulers wait on a skipped update."""
+    """nerfstudio's Optimizers (every attribute passed through): all step or none, and the schedulers wait on a skip."""
 
     def __init__(self, optimizers, guard: StepGuard):
         self._optimizers = optimizers
