@@ -150,6 +150,8 @@ def refused_changes(typed: Dict[str, object], config, saved) -> list:
                                f"here, {_show(before if before is MISSING else type(before))} in the saved edit")
             continue
         before = get_setting(saved, ALIASES.get(path, path))
+        if isinstance(value, type) and is_dataclass(before):
+            before = type(before)  # a subcommand's node stands for its type
         if not same_setting(value, before):
             changes.append(f"{flag(path)}: {_show(value)} here, {_show(before)} in the saved edit")
     return changes

@@ -19,7 +19,8 @@ from nerfstudio.configs.method_configs import method_configs
 
 from sked_ns.demo import scene as demo_scene
 from sked_ns.base_scene import read_model_state, resolve_base
-from sked_ns.edit_run import edit_config, run_edit
+from sked_ns.edit_run import edit_config, resume_config, run_edit
+from sked_ns.errors import SkedUserError
 from sked_ns.metrics import intersection_over_sketch, psnr_outside
 from sked_ns.render import load_pipeline, render_at, resized_mask
 from sked_ns.trainer import resolve_edit
@@ -100,13 +101,22 @@ def test_interrupted_edit_resumes_from_its_last_checkpoint(scene, tmp_path):
     first = edit_config(scene["base"], scene["data"], scene["sketches"], tmp_path / "first", iterations=21,
                         steps_per_save=10, guidance_resolution=16, silhouette_resolution=16)
     interrupted = run_edit(first).base_dir
-    assert [p.name for p in (interrupted / "nerfstudio_models").glob("*.ckpt")] == ["step-000000020.ckpt"]
-    config = edit_config(interrupted / "nerfstudio_models", scene["data"], scene["sketches"], tmp_path / "resumed",
-                         iterations=25, guidance_resolution=16, silhouette_resolution=16)
-    config.sketches = None  # taken from the interrupted run's config.yml
-    config.pipeline.model.base_checkpoint = None
+    models = interrupted / "nerfstudio_models"
+    assert [p.name for p in models.glob("*.ckpt")] == ["step-000000020.ckpt"]
+    # A kill while saving (before checkpoints were written atomically) left a newer one cut short.
+    (models / "step-000000021.ckpt").write_bytes((models / "step-000000020.ckpt").read_bytes()[:5000])
+    # `ns-train sked --load-dir <run> --output-dir ... --max-num-iterations 25`: no settings, no dataparser.
+    config = resume_config(interrupted, tmp_path / "resumed", iterations=25)
     config.set_timestamp()
-    config.save_config()
+    with pytest.warns(UserWarning, match="step-000000021.ckpt: skipped, it is truncated"):
+        config.save_config()
+    # The saved edit continues (not the preset's carving at 128 px, on CUDA, to 10,000 iterations).
+    saved, model = yaml.load((interrupted / "config.yml").read_text(), Loader=yaml.Loader), config.pipeline.model
+    assert type(model.guidance) is type(saved.pipeline.model.guidance) and type(model.guidance).__name__ != \
+        "StableDiffusionGuidanceConfig"
+    assert (model.guidance_resolution, model.silhouette_resolution, model.sketches) == (16, 16, scene["sketches"])
+    assert (config.steps_per_save, config.machine.device_type, config.max_num_iterations) == (10, "cpu", 25)
+    assert config.get_base_dir().parent == tmp_path / "resumed" / "edit" / "sked"
     trainer = config.setup(local_rank=0, world_size=1)
     trainer.setup()
     assert trainer._start_step == 21
@@ -122,6 +132,18 @@ def test_interrupted_edit_resumes_from_its_last_checkpoint(scene, tmp_path):
     trainer.train()  # and it carries on to its total, no further
     assert steps == [21, 22, 23, 24]
     assert (trainer.checkpoint_dir / "step-000000024.ckpt").exists()
+
+
+def test_resume_refuses_a_finished_edit_a_shorter_total_and_another_sketch_set(scene, edited, tmp_path):
+    with pytest.raises(SkedUserError, match=r"--load-dir .*: the edit was saved after 60 of its 60 iterations .*"
+                                            r"Pass --max-num-iterations above 60"):
+        resolve_edit(resume_config(edited["run"]))
+    with pytest.raises(SkedUserError, match=r"^--max-num-iterations 30: the edit was saved after 60"):
+        resolve_edit(resume_config(edited["run"], iterations=30))
+    config = resume_config(edited["run"], iterations=80)
+    config.sketches = tmp_path / "other-sketches"
+    with pytest.raises(SkedUserError, match=r"so these settings cannot change:\n  --sketches: .*other-sketches.* here"):
+        resolve_edit(config)
 
 
 def test_progressive_edit_uses_the_edit_as_base(scene, edited, tmp_path):
@@ -146,6 +168,36 @@ def test_load_dir_without_checkpoint_or_config(scene, tmp_path):
     shutil.copy(scene["base"] / "config.yml", tmp_path / "config.yml")
     with pytest.raises(FileNotFoundError, match="no step-.*ckpt"):
         resolve_base(tmp_path)
+
+
+def test_missing_dataparser_names_the_bases(scene, tmp_path):
+    config = edit_config(scene["base"], scene["data"], scene["sketches"], tmp_path, iterations=2)
+    config.data = config.pipeline.datamanager.data = None
+    config.pipeline.datamanager.dataparser.data = Path()  # `ns-train sked --load-dir ... --sketches ...` and no more
+    with pytest.raises(SkedUserError, match=f"no --data: .*`nerfstudio-data --data {scene['data']}`"):
+        resolve_edit(config)
+    config.pipeline.datamanager.dataparser.data = tmp_path / "absent"
+    with pytest.raises(SkedUserError, match=r"--data .*absent: no such file or folder"):
+        resolve_edit(config)
+
+
+def test_unwritable_output_dir_is_refused_before_anything_runs(scene, tmp_path):
+    (tmp_path / "file").write_text("")
+    config = edit_config(scene["base"], scene["data"], scene["sketches"], tmp_path / "file" / "sub", iterations=2)
+    config.set_timestamp()
+    with pytest.raises(SkedUserError, match=r"^--output-dir .*file/sub: cannot write there"):
+        config.save_config()
+
+
+def test_a_base_without_dataparser_transforms_warns(scene, tmp_path):
+    from sked_ns.base_scene import check_same_frame
+    from sked_ns.sketches import DataparserTransform
+
+    run = tmp_path / "run"
+    shutil.copytree(scene["base"], run, ignore=shutil.ignore_patterns("dataparser_transforms.json"))
+    here = DataparserTransform.from_json(scene["base"] / "dataparser_transforms.json")
+    with pytest.warns(UserWarning, match=r"dataparser_transforms.json: missing, so the frame .* cannot be checked"):
+        check_same_frame(resolve_base(run), here)
 
 
 def test_unsupported_base_method(scene, tmp_path):

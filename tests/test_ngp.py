@@ -9,7 +9,7 @@ import torch
 from reference import file_digests
 
 from sked_ns.base_scene import read_model_state
-from sked_ns.edit_run import edit_config, run_edit
+from sked_ns.edit_run import edit_config, resume_config, run_edit
 from sked_ns.guidance import guidance_name
 from sked_ns.metrics import intersection_over_sketch, psnr_outside
 from sked_ns.ngp_model import SkedNGPModel, SkedNGPModelConfig
@@ -111,7 +111,7 @@ def test_ngp_edit_outputs_preservation_weight_and_resumes(ngp_scene, ngp_edited,
     assert weight.shape == (24, 24, 1) and torch.isfinite(weight).all()
     assert weight.min() < 0.5 < weight.max(), "low inside the sketch, 1 elsewhere"
     # Resume: --load-dir on the edit continues it from its last checkpoint.
-    config = edit_config(ngp_edited["run"], ngp_scene["data"], ngp_scene["sketches"], tmp_path, iterations=ITERATIONS + 2)
+    config = resume_config(ngp_edited["run"], tmp_path, iterations=ITERATIONS + 2)
     resolve_edit(config)
     assert isinstance(config.pipeline.model, SkedNGPModelConfig)
     assert config.load_dir == ngp_edited["run"] / "nerfstudio_models"

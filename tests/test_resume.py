@@ -57,6 +57,8 @@ def test_resume_takes_the_saved_edit_not_the_defaults():
     # This run's own: where it writes (typed) and its timestamp, beside the saved edit's experiment.
     assert (config.output_dir, config.experiment_name, config.timestamp) == (Path("/elsewhere"), "scene", "now")
     assert config.method_name == "sked-fast"
+    resume(config, saved)  # the trainer resolves the config again: nothing changes, nothing is refused
+    assert isinstance(config.pipeline.model.guidance, ReferenceGuidanceConfig) and config.max_num_iterations == 60
     assert config.load_dir == Path("/runs/scene/sked/2026-01-01_000000")
 
 
