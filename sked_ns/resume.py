@@ -138,8 +138,9 @@ def changed_subcommand(config, saved, path: str):
 def refused_changes(typed: Dict[str, object], config, saved) -> list:
     """Typed settings outside RESUME_SETTABLE that differ from the saved edit, as the user types them."""
     changes, reported = [], set()
+    aliased = {ALIASES[path] for path in typed if path in ALIASES}  # said as the user typed it (--sketches)
     for path, value in sorted(typed.items()):
-        if _settable(path) or _derived(path):
+        if _settable(path) or _derived(path) or path in aliased:
             continue
         node = changed_subcommand(config, saved, path)
         if node is not None:  # a subcommand changed: said once, not with each of its settings

@@ -77,12 +77,13 @@ def test_resume_takes_the_settable_flags():
 
 def test_resume_refuses_what_would_change_the_edit():
     config = resume_config(Path("/run"))
-    config.sketches = Path("/sketches/other")
+    config.sketches = config.pipeline.model.sketches = Path("/sketches/other")  # the alias, as resolve_edit sets it
     config.pipeline.model.beta = 0.5
     config.pipeline.model.lambda_pres = 0.0
     with pytest.raises(SkedUserError) as refused:
         resume(config, saved_edit())
     message = str(refused.value)
+    assert "--pipeline.model.sketches" not in message  # said once, as typed
     for typed in ("--sketches", "--pipeline.model.beta: 0.5 here, 0.05 in the saved edit", "--pipeline.model.lambda-pres",
                   "--progressive True"):
         assert typed in message, message
