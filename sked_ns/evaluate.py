@@ -22,7 +22,7 @@ import numpy as np
 import torch
 
 from sked_ns.base_scene import resolve_base
-from sked_ns.errors import SkedFileNotFoundError, SkedUserError
+from sked_ns.errors import SkedFileNotFoundError, SkedUserError, check_writable_folder
 from sked_ns import novel_views
 from sked_ns.metrics import intersection_over_sketch, psnr_outside, ssim_outside
 from sked_ns.clip_score import DEFAULT_CLIP, ClipScorer, orbit_cameras
@@ -208,6 +208,9 @@ def output_paths(run: Path, output: Optional[Path], sheet: Optional[Path], overw
     if existing and not overwrite:
         raise SkedUserError(f"sked-eval: {' and '.join(existing)} already exist(s) (an earlier evaluation?). Pass "
                             "another --output (and --sheet), or --overwrite to replace them.")
+    # Before minutes of rendering, not after: a folder that cannot hold the results is refused now.
+    check_writable_folder(output.parent, "--output")
+    check_writable_folder(sheet.parent, "--sheet")
     return output, sheet
 
 

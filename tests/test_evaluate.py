@@ -51,3 +51,14 @@ def test_the_command_refuses_before_loading_anything(tmp_path, monkeypatch, caps
     monkeypatch.setattr(sys, "argv", ["sked-eval", str(tmp_path / "nowhere")])
     with pytest.raises(SkedFileNotFoundError, match="sked-eval .*nowhere"):
         entrypoint()
+
+
+def test_an_output_folder_that_cannot_be_written_is_refused_before_evaluating(tmp_path):
+    run = tmp_path / "run"
+    run.mkdir()
+    blocker = tmp_path / "a_file"
+    blocker.write_text("")
+    with pytest.raises(SkedUserError, match="--output"):
+        output_paths(run, blocker / "metrics.json", None, overwrite=False)
+    with pytest.raises(SkedUserError, match="--sheet"):
+        output_paths(run, None, blocker / "sheet.png", overwrite=False)
