@@ -32,6 +32,8 @@ from typing import Dict, List, Optional
 
 import numpy as np
 
+from sked_ns.atomic import write_text_atomically
+
 RESULTS = Path(__file__).resolve().parent / "results"
 TUNED, HELD_OUT = ("hat", "handle", "antenna"), ("vase", "crate")  # the demo sphere's edits are tuned on
 # A CPU step of a full-size nerfacto base at 32 px with nerfacto's 400 samples per ray takes ~25 s here:
@@ -268,7 +270,7 @@ def rescore(output: Path, work: Path) -> None:
             print(f"{row['scene']} {tag}: not re-scored: {error}".splitlines()[0])
             continue
         print(table({"runs": [row]}).splitlines()[-1], flush=True)
-    output.write_text(json.dumps(results, indent=2))
+    write_text_atomically(output, json.dumps(results, indent=2))
     print(table(results))
 
 
@@ -325,7 +327,7 @@ def main() -> None:
                                         "protocol": protocol_name, "variant": variant,
                                         "seconds": seconds, "summary": summary})
                 args.output.parent.mkdir(parents=True, exist_ok=True)
-                args.output.write_text(json.dumps(results, indent=2))
+                write_text_atomically(args.output, json.dumps(results, indent=2))
                 print(table({"runs": results["runs"][-1:]}).splitlines()[-1], flush=True)
     print(table(results))
     print(f"wrote {args.output}")

@@ -45,6 +45,8 @@ from typing import Callable, Dict, List, Optional
 import numpy as np
 import torch
 
+from sked_ns.atomic import write_text_atomically
+
 BENCHMARKS = Path(__file__).resolve().parent
 RESULTS = BENCHMARKS / "results"
 sys.path.insert(0, str(BENCHMARKS))
@@ -85,7 +87,7 @@ class Check:
         return value
 
     def write(self) -> None:
-        self.output.write_text(json.dumps(self.result, indent=2, default=str))
+        write_text_atomically(self.output, json.dumps(self.result, indent=2, default=str))
 
 
 def sync(device: str) -> None:

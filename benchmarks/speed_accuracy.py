@@ -29,6 +29,8 @@ from pathlib import Path
 
 import numpy as np
 
+from sked_ns.atomic import write_text_atomically
+
 RESULTS = Path(__file__).parent / "results"
 ITERATION_DIVISOR = {"cpu": 100, "cuda": 1}
 RESOLUTION_DIVISOR = {"cpu": 4, "cuda": 1}
@@ -251,7 +253,7 @@ def commit() -> str:
 
 def write_partial(output: Path, results: list[dict]) -> None:
     output.parent.mkdir(parents=True, exist_ok=True)
-    output.with_suffix(".partial.json").write_text(json.dumps({"commit": commit(), "runs": results}, indent=2))
+    write_text_atomically(output.with_suffix(".partial.json"), json.dumps({"commit": commit(), "runs": results}, indent=2))
 
 
 def carried_over(older: dict, names: list[str], source: str) -> list[dict]:
@@ -282,7 +284,7 @@ def main() -> None:
         data = json.loads(args.output.read_text())
         data["summary"] = summarise(data["runs"])
         label = f"{data['protocol']}\n{data['machine']}; reference guidance, tiny demo scenes"
-        args.output.write_text(json.dumps(data, indent=2))
+        write_text_atomically(args.output, json.dumps(data, indent=2))
         plot(data["summary"], args.output.with_suffix(".png"), label)
         print(table(data["summary"]))
         return
@@ -325,7 +327,7 @@ def main() -> None:
               f"{torch.get_num_threads()} threads, no GPU"
     label = f"{protocol}\n{machine}; reference guidance, tiny demo scenes"
     args.output.parent.mkdir(parents=True, exist_ok=True)
-    args.output.write_text(json.dumps({"protocol": protocol, "machine": machine, "device": device, "quick": args.quick,
+    write_text_atomically(args.output, json.dumps({"protocol": protocol, "machine": machine, "device": device, "quick": args.quick,
                                        "commit": commit(), "summary": summary, "runs": results}, indent=2))
     plot(summary, args.output.with_suffix(".png"), label)
     args.output.with_suffix(".partial.json").unlink(missing_ok=True)  # superseded by the full results

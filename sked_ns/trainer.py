@@ -11,7 +11,6 @@ edit that result again instead. Checkpoints are written so that a kill cannot le
 from __future__ import annotations
 
 import contextlib
-import os
 import pickle
 import warnings
 from dataclasses import dataclass, field, fields
@@ -24,6 +23,7 @@ from nerfstudio.models.instant_ngp import InstantNGPModelConfig
 from nerfstudio.utils.decorators import check_main_thread
 from nerfstudio.utils.rich_utils import CONSOLE
 
+from sked_ns.atomic import publish_atomically
 from sked_ns.base_scene import BaseScene, checkpoint_step, copy_base_architecture, dataparser_command, resolve_base
 from sked_ns.compat import train_loop_adds_start_step
 from sked_ns.errors import SkedFileNotFoundError, SkedUserError, check_writable_folder
@@ -245,19 +245,6 @@ class SkedTrainer(Trainer):
             for older in checkpoint_dir.glob("*.ckpt"):
                 if older != path:
                     older.unlink()
-
-
-def publish_atomically(written: Path, path: Path) -> None:
-    """Move a finished file to `path` so that readers see the old state or the whole new file, even after a kill."""
-    with open(written, "rb") as file:
-        os.fsync(file.fileno())  # the data is on disk before the name points at it
-    os.replace(written, path)
-    with contextlib.suppress(OSError):  # and the new name survives a power cut (not every file system allows it)
-        folder = os.open(path.parent, os.O_RDONLY)
-        try:
-            os.fsync(folder)
-        finally:
-            os.close(folder)
 
 
 @contextlib.contextmanager
