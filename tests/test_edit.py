@@ -176,6 +176,8 @@ def test_missing_dataparser_names_the_bases(scene, tmp_path):
     config.pipeline.datamanager.dataparser.data = Path()  # `ns-train sked --load-dir ... --sketches ...` and no more
     with pytest.raises(SkedUserError, match=f"no --data: .*`nerfstudio-data --data {scene['data']}`"):
         resolve_edit(config)
+    config = edit_config(scene["base"], scene["data"], scene["sketches"], tmp_path, iterations=2)  # unresolved again
+    config.data = config.pipeline.datamanager.data = None
     config.pipeline.datamanager.dataparser.data = tmp_path / "absent"
     with pytest.raises(SkedUserError, match=r"--data .*absent: no such file or folder"):
         resolve_edit(config)

@@ -154,7 +154,7 @@ def test_nerfacto_style_bases_are_recognised_by_config_type(tmp_path, method):
     config = method_configs[method]
     assert base_family(config.pipeline.model) == "nerfacto"
     (tmp_path / "nerfstudio_models").mkdir()
-    (tmp_path / "nerfstudio_models" / "step-000000001.ckpt").touch()
+    torch.save({"step": 1, "pipeline": {}}, tmp_path / "nerfstudio_models" / "step-000000001.ckpt")  # intact, if empty
     (tmp_path / "config.yml").write_text(yaml.dump(config))
     assert resolve_base(tmp_path).family == "nerfacto"
 

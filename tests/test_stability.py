@@ -130,7 +130,8 @@ def test_one_pixel_sketches_stay_finite(scene, tmp_path):
         mask[16, 16] = True  # both views' centre pixel: the rays meet at the object centre
         return mask
 
-    _run_and_check(_trainer(scene, tmp_path / "run", sketches=_mask_set(tmp_path / "tiny", one_pixel)))
+    # At the sketches' own resolution: a smaller L_sil render would shrink the pixel to nothing (refused, test_validation).
+    _run_and_check(_trainer(scene, tmp_path / "run", sketches=_mask_set(tmp_path / "tiny", one_pixel), silhouette_resolution=32))
 
 
 def test_whole_image_sketches_stay_finite_and_warn(scene, tmp_path):
