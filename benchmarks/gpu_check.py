@@ -429,7 +429,11 @@ def environment(args) -> dict:
 
             info["nerfacc_kernels"] = "prebuilt extension (nerfacc.csrc)"
         except ImportError:
-            info["nerfacc_kernels"] = "JIT-compiled on first use"
+            from sked_ns.nerfacc_kernels import needs_patched_build
+
+            # How the first kernel call will get them (sked_ns/nerfacc_kernels.py).
+            info["nerfacc_kernels"] = ("sked_ns's patched copy, built once per content" if needs_patched_build()
+                                       else "nerfacc's own JIT build on first use")
     except Exception as error:  # reported, not fatal
         info["import_error"] = repr(error)
     return info
