@@ -46,7 +46,7 @@ def flag(name: str, prefix: str = MODEL_FLAGS) -> str:
     return prefix + name.replace("_", "-")
 
 
-def _is_number(value) -> bool:
+def is_number(value) -> bool:
     return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
 
 
@@ -69,7 +69,7 @@ def option_problems(options) -> List[str]:
     problems = []
     for name in LOSS_WEIGHTS:
         value = getattr(options, name)
-        if not (_is_number(value) and value >= 0):
+        if not (is_number(value) and value >= 0):
             problems.append(f"{flag(name)} {value!r}: a loss weight must be a finite number >= 0 (a negative weight "
                             f"rewards what the loss penalises); 0 turns the loss off.")
     positive = {
@@ -79,12 +79,12 @@ def option_problems(options) -> List[str]:
     }
     for name, meaning in positive.items():
         value = getattr(options, name)
-        if not (_is_number(value) and value > 0):
+        if not (is_number(value) and value > 0):
             problems.append(f"{flag(name)} {value!r}: must be a finite number > 0 ({meaning}).")
-    if not (_is_number(options.occupancy_threshold) and options.occupancy_threshold >= 0):
+    if not (is_number(options.occupancy_threshold) and options.occupancy_threshold >= 0):
         problems.append(f"{flag('occupancy_threshold')} {options.occupancy_threshold!r}: a density, must be a "
                         "finite number >= 0 (default 5).")
-    if not (_is_number(options.photo_threshold) and 0 <= options.photo_threshold <= 1):
+    if not (is_number(options.photo_threshold) and 0 <= options.photo_threshold <= 1):
         problems.append(f"{flag('photo_threshold')} {options.photo_threshold!r}: a preservation weight, must be in "
                         "[0, 1] (default 0.99).")
     for name in ("guidance_resolution", "silhouette_resolution"):
@@ -103,7 +103,7 @@ def datamanager_problems(datamanager) -> List[str]:
 
     def check_range(name: str, low: float, high: float, meaning: str) -> None:
         values = tuple(getattr(datamanager, name))
-        if not (len(values) == 2 and all(_is_number(v) for v in values) and low <= values[0] <= values[1] <= high):
+        if not (len(values) == 2 and all(is_number(v) for v in values) and low <= values[0] <= values[1] <= high):
             problems.append(f"{flag(name, DATAMANAGER_FLAGS)} {' '.join(map(str, values))}: must be two numbers, "
                             f"smallest first, within {meaning}.")
 

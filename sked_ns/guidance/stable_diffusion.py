@@ -23,7 +23,7 @@ from torch import Tensor
 
 from sked_ns.guidance.base import Guidance, GuidanceConfig, RenderedView
 from sked_ns.random_views import DIRECTIONS
-from sked_ns.validation import _is_number, refuse, warn
+from sked_ns.validation import is_number, refuse, warn
 
 
 SdsWeighting = Literal["authors", "dreamfusion"]
@@ -94,15 +94,15 @@ class StableDiffusionGuidanceConfig(GuidanceConfig):
     def check(self) -> None:
         problems = []
         scale = self.guidance_scale
-        if not (_is_number(scale) and scale >= 1):
+        if not (is_number(scale) and scale >= 1):
             problems.append(f"{FLAGS}guidance-scale {scale!r}: must be a finite number >= 1 (1 = the text-conditioned "
                             "prediction alone; below 1 the prompt counts less, 0 ignores it and a negative scale pushes "
                             "away from it). DreamFusion and SKED use 100.")
         t_range = tuple(self.t_range)
-        if not (len(t_range) == 2 and all(map(_is_number, t_range)) and 0 < t_range[0] <= t_range[1] <= 1):
+        if not (len(t_range) == 2 and all(map(is_number, t_range)) and 0 < t_range[0] <= t_range[1] <= 1):
             problems.append(f"{FLAGS}t-range {' '.join(map(str, self.t_range))}: must be two fractions of the diffusion "
                             "schedule in (0, 1], smallest first (default 0.02 0.98).")
-        if not (_is_number(self.weight) and self.weight >= 0):
+        if not (is_number(self.weight) and self.weight >= 0):
             problems.append(f"{FLAGS}weight {self.weight!r}: a loss weight must be a finite number >= 0.")
         if not (isinstance(self.image_size, int) and self.image_size > 0):
             problems.append(f"{FLAGS}image-size {self.image_size!r}: must be a whole number of pixels > 0 (SD's 512).")
