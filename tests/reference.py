@@ -55,3 +55,66 @@ def file_digests(folder):
 
     folder = Path(folder)
     return {p.relative_to(folder): hashlib.sha256(p.read_bytes()).hexdigest() for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
+def splat_render_brute_force(means, quats, scales, opacities, colors, viewmats, Ks, width, height,
+                             sh_degree=None, backgrounds=None, render_mode="RGB", near_plane=0.01,
+                             far_plane=1e10, eps2d=0.3, tile_size=16):
+    """Gaussian splatting by brute force: every visible Gaussian at every pixel, one sort per camera.
+
+    Projection and SH are gsplat's torch references; compositing follows gsplat's kernel
+    (alpha = min(0.999, o exp(-sigma)), skipped below 1/255, stop before T <= 1e-4), and a Gaussian
+    reaches a pixel only inside the 16x16 tiles its 3-sigma square touches (gsplat's tile rule,
+    here tested pixel by pixel). Returns (render (C,H,W,D), alpha (C,H,W,1), means2d (C,N,2)).
+    """
+    import torch
+    from gsplat.cuda._torch_impl import _fully_fused_projection, _quat_scale_to_covar_preci, _spherical_harmonics
+
+    covars, _ = _quat_scale_to_covar_preci(quats, scales, compute_covar=True, compute_preci=False)
+    radii, means2d, depths, conics, _ = _fully_fused_projection(
+        means, covars, viewmats, Ks, width, height, eps2d=eps2d, near_plane=near_plane, far_plane=far_plane
+    )
+    C = len(viewmats)
+    if sh_degree is not None:
+        centres = torch.inverse(viewmats)[:, :3, 3]
+        coeffs = colors.expand(C, -1, -1, -1) if colors.dim() == 3 else colors
+        colors = torch.clamp_min(_spherical_harmonics(sh_degree, means[None] - centres[:, None], coeffs) + 0.5, 0.0)
+    elif colors.dim() == 2:
+        colors = colors.expand(C, -1, -1)
+    if render_mode in ("D", "ED"):
+        colors = depths[..., None]
+    elif render_mode in ("RGB+D", "RGB+ED"):
+        colors = torch.cat([colors, depths[..., None]], dim=-1)
+    ys, xs = torch.meshgrid(torch.arange(height), torch.arange(width), indexing="ij")
+    pixels = torch.stack([xs, ys], dim=-1).reshape(-1, 2).to(means.dtype) + 0.5
+    pixel_tiles = (pixels - 0.5).long() // tile_size
+    renders, alphas = [], []
+    for cam in range(C):
+        visible = torch.nonzero(radii[cam] > 0)[:, 0]
+        visible = visible[torch.sort(depths[cam, visible], stable=True).indices]
+        mean, conic = means2d[cam, visible], conics[cam, visible]
+        radius = radii[cam, visible].to(means.dtype)[:, None]
+        tile_min = torch.floor((mean - radius) / tile_size)
+        tile_max = torch.ceil((mean + radius) / tile_size)
+        in_tiles = ((pixel_tiles[:, None] >= tile_min[None]) & (pixel_tiles[:, None] < tile_max[None])).all(-1)
+        delta = mean[None] - pixels[:, None]  # (HW, M, 2)
+        sigma = 0.5 * (conic[:, 0] * delta[..., 0] ** 2 + conic[:, 2] * delta[..., 1] ** 2) + conic[:, 1] * delta[..., 0] * delta[..., 1]
+        alpha = torch.clamp_max(opacities[visible] * torch.exp(-sigma), 0.999)
+        alpha = torch.where(in_tiles & (sigma >= 0) & (alpha >= 1 / 255), alpha, torch.zeros_like(alpha))
+        with torch.no_grad():
+            counted = torch.cumprod(1 - alpha, dim=-1) > 1e-4
+        alpha = torch.where(counted, alpha, torch.zeros_like(alpha))
+        transmittance = torch.cumprod(1 - alpha, dim=-1)
+        before = torch.cat([torch.ones_like(alpha[:, :1]), transmittance[:, :-1]], dim=-1)
+        final = transmittance[:, -1:] if alpha.shape[1] else torch.ones_like(pixels[:, :1])
+        render = (alpha * before) @ colors[cam, visible]
+        if backgrounds is not None and render_mode not in ("D", "ED"):
+            background = backgrounds[cam]
+            if render_mode in ("RGB+D", "RGB+ED"):
+                background = torch.cat([background, background.new_zeros(1)])
+            render = render + final * background
+        if render_mode in ("ED", "RGB+ED"):
+            render = torch.cat([render[:, :-1], render[:, -1:] / (1 - final).clamp(min=1e-10)], dim=-1)
+        renders.append(render.reshape(height, width, -1))
+        alphas.append((1 - final).reshape(height, width, 1))
+    return torch.stack(renders), torch.stack(alphas), means2d
