@@ -24,6 +24,7 @@ Limits of the CPU path (measured on one core of this project's 2-core CPU): see 
 
 from __future__ import annotations
 
+import bisect
 import math
 from dataclasses import dataclass
 from typing import Dict, Optional, Tuple
@@ -33,8 +34,10 @@ from torch import Tensor
 
 TILE_SIZE = 16
 """Tile edge in pixels, gsplat's default."""
-PAIR_BUDGET = 1 << 22
-"""Pixel-Gaussian pairs one chunk of tiles may hold (each float tensor of a chunk: 16 MB)."""
+PAIR_BUDGET = 1 << 21
+"""Pixel-Gaussian pairs one block of a chunk of tiles holds (each float tensor of a block: 8 MB)."""
+K_BLOCK = 256
+"""Gaussians per tile composited at a time; a chunk stops after the block where all its pixels are done."""
 ALPHA_MIN = 1.0 / 255.0
 ALPHA_MAX = 0.999
 TRANSMITTANCE_MIN = 1e-4
@@ -167,13 +170,13 @@ def _rasterize_torch(means, quats, scales, opacities, colors, viewmats, Ks, widt
 
 @dataclass
 class _TilePlan:
-    """Which Gaussians (flat index c*N + n, front to back) each non-empty tile composites."""
+    """Which Gaussians (flat index c*N + n, front to back) each non-empty tile composites, in chunks."""
 
-    chunks: list  # [(tile_ids (B,), gaussian_index (B, K) padded with the sentinel C*N, pixel_ids (B, P))]
-    pixel_centres: list  # per chunk (B, P, 2) pixel centres
-    n_pixels: int  # C*H*W; pixel id n_pixels is the trash row of partial tiles
+    chunks: list  # [(gaussian_index (B,K) padded with the sentinel C*N, pixel_ids (B,P), tile_centres (B,2), lengths)]
+    n_pixels: int  # C*H*W; pixel id n_pixels is the trash row for the parts of edge tiles outside the image
     tiles_per_gauss: Tensor
     shape: tuple  # (C, N, H, W)
+    tile_size: int
 
 
 def _bin_tiles(means2d, radii, depths, width, height, tile_size=TILE_SIZE, pair_budget=None):
@@ -183,7 +186,7 @@ def _bin_tiles(means2d, radii, depths, width, height, tile_size=TILE_SIZE, pair_
     device = means2d.device
     tile_width, tile_height = math.ceil(width / tile_size), math.ceil(height / tile_size)
     tiles_per_camera = tile_width * tile_height
-    radius = radii.float()
+    radius = radii.to(means2d.dtype)
     tile_min = torch.floor((means2d - radius[..., None]) / tile_size).long()
     tile_max = torch.ceil((means2d + radius[..., None]) / tile_size).long()
     limits = torch.tensor([tile_width, tile_height], device=device)
@@ -193,7 +196,7 @@ def _bin_tiles(means2d, radii, depths, width, height, tile_size=TILE_SIZE, pair_
     tiles_per_gauss = (extent[..., 0] * extent[..., 1]) * (radii > 0)
 
     camera, gaussian = torch.nonzero(tiles_per_gauss > 0, as_tuple=True)
-    # front to back: stable sort by depth keeps index order among equal depths
+    # front to back: a stable sort keeps index order among equal depths, as gsplat's radix sort
     order = torch.sort(depths[camera, gaussian], stable=True).indices
     camera, gaussian = camera[order], gaussian[order]
     counts = tiles_per_gauss[camera, gaussian]
@@ -210,106 +213,181 @@ def _bin_tiles(means2d, radii, depths, width, height, tile_size=TILE_SIZE, pair_
     per_tile = torch.bincount(tile_sorted, minlength=C * tiles_per_camera)
     starts = torch.cumsum(per_tile, 0) - per_tile
     busy = torch.nonzero(per_tile > 0, as_tuple=True)[0]
+    # longest lists first, so each chunk pads little
     busy = busy[torch.sort(per_tile[busy], descending=True, stable=True).indices]
+    busy_counts = per_tile[busy].tolist()
 
     pixels_per_tile = tile_size * tile_size
-    offset_y, offset_x = torch.meshgrid(torch.arange(tile_size, device=device), torch.arange(tile_size, device=device), indexing="ij")
-    offset_x, offset_y = offset_x.reshape(-1), offset_y.reshape(-1)
-    chunks, centres = [], []
+    offset_y, offset_x = (
+        g.reshape(-1) for g in torch.meshgrid(torch.arange(tile_size, device=device), torch.arange(tile_size, device=device), indexing="ij")
+    )
+    chunks = []
     i = 0
-    busy_counts = per_tile[busy].tolist()
     while i < len(busy):
         longest = busy_counts[i]
-        size = max(1, pair_budget // (longest * pixels_per_tile))
+        size = max(1, pair_budget // (min(longest, K_BLOCK) * pixels_per_tile))
         tiles = busy[i : i + size]
         i += size
         slot = torch.arange(longest, device=device)
         valid = slot[None] < per_tile[tiles][:, None]
-        position = (starts[tiles][:, None] + slot[None]).clamp(max=max(len(flat_gaussian) - 1, 0))
+        position = (starts[tiles][:, None] + slot[None]).clamp(max=len(flat_gaussian) - 1)
         index = torch.where(valid, flat_gaussian[position], torch.full_like(position, C * N))
-        camera_of = tiles // tiles_per_camera
-        in_camera = tiles % tiles_per_camera
-        x = (in_camera % tile_width)[:, None] * tile_size + offset_x[None]
-        y = (in_camera // tile_width)[:, None] * tile_size + offset_y[None]
+        camera_of, in_camera = tiles // tiles_per_camera, tiles % tiles_per_camera
+        corner_x = (in_camera % tile_width) * tile_size
+        corner_y = (in_camera // tile_width) * tile_size
+        x, y = corner_x[:, None] + offset_x[None], corner_y[:, None] + offset_y[None]
         inside = (x < width) & (y < height)
         pixel = torch.where(inside, camera_of[:, None] * height * width + y * width + x, torch.full_like(x, C * height * width))
-        chunks.append((tiles, index, pixel))
-        centres.append(torch.stack([x, y], dim=-1).to(means2d.dtype) + 0.5)
-    return _TilePlan(chunks, centres, C * height * width, tiles_per_gauss.int(), (C, N, height, width))
+        tile_centres = torch.stack([corner_x, corner_y], dim=-1).to(means2d.dtype) + tile_size / 2
+        chunks.append((index, pixel, tile_centres, busy_counts[i - size : i]))
+    return _TilePlan(chunks, C * height * width, tiles_per_gauss.int(), (C, N, height, width), tile_size)
 
 
-def composite(delta, conics, opacities, colors):
-    """Front-to-back alpha compositing of K sorted Gaussians at P pixels of B tiles (gsplat's kernel rules).
+def _pixel_features(tile_size, dtype, device):
+    """(P,6) features of each pixel of a tile, (u, v) from the tile centre: log(o e^-sigma) = features @ coefficients."""
+    offsets = torch.arange(tile_size, device=device, dtype=dtype) + 0.5 - tile_size / 2
+    v, u = (g.reshape(-1) for g in torch.meshgrid(offsets, offsets, indexing="ij"))
+    return torch.stack([0.5 * u * u, u * v, 0.5 * v * v, -u, -v, torch.ones_like(u)], dim=-1)
 
-    delta (B,P,K,2): Gaussian mean minus pixel centre; conics (B,K,3); opacities (B,K); colors (B,K,D).
-    Returns colour (B,P,D) without background and alpha (B,P,1) = 1 - final transmittance.
+
+def _log_alpha_coefficients(means2d, conics, opacities, tile_centres):
+    """(B,6,K) coefficients of log(o) - sigma(u, v) as a quadratic in the pixel's (u, v).
+
+    sigma = 0.5 a dx^2 + b dx dy + 0.5 c dy^2 with dx = mean - pixel (gsplat's kernel); tile-centred
+    coordinates keep the expanded terms small, so float32 loses little (measured: ~3e-6 of a pixel's
+    colour against the direct formula). A matmul with the pixel features then gives every pixel's value.
     """
-    dx, dy = delta[..., 0], delta[..., 1]
-    a, b, c = (conics[:, None, :, i] for i in range(3))
-    sigma = 0.5 * (a * dx * dx + c * dy * dy) + b * dx * dy
-    alpha = torch.clamp_max(opacities[:, None, :] * torch.exp(-sigma), ALPHA_MAX)
-    alpha = torch.where((sigma >= 0) & (alpha >= ALPHA_MIN), alpha, torch.zeros_like(alpha))
-    with torch.no_grad():
-        # a Gaussian counts only while the transmittance after it stays above the cut-off
-        counted = torch.cumprod(1.0 - alpha, dim=-1) > TRANSMITTANCE_MIN
-    alpha = torch.where(counted, alpha, torch.zeros_like(alpha))
-    transmittance = torch.cumprod(1.0 - alpha, dim=-1)
-    before = torch.cat([torch.ones_like(transmittance[..., :1]), transmittance[..., :-1]], dim=-1)
-    weights = alpha * before
-    colour = torch.einsum("bpk,bkd->bpd", weights, colors)
-    return colour, 1.0 - transmittance[..., -1:]
+    mx, my = (means2d - tile_centres[:, None, :]).unbind(-1)
+    a, b, c = conics.unbind(-1)
+    constant = 0.5 * (a * mx * mx + c * my * my) + b * mx * my
+    # opacity 0 (the padding) gives a vanishing alpha, and a zero gradient through the clamp
+    log_opacity = torch.log(opacities.clamp(min=1e-30))
+    return torch.stack([-a, -b, -c, -(a * mx + b * my), -(b * mx + c * my), log_opacity - constant], dim=1)
 
 
-def _gather(flat, index):
-    return flat[index]
+def _block_weights(features, coefficients, carry, live):
+    """One block of Gaussians at every pixel of a chunk's tiles, with gsplat's skip and stop rules.
+
+    Returns o e^-sigma, alpha (0 where skipped), transmittance before each, whether each counts, the
+    blending weights, and the transmittance and still-open pixels after the block.
+    """
+    raw = torch.exp(torch.matmul(features, coefficients))  # (B,P,Kb)
+    alpha = torch.clamp_max(raw, ALPHA_MAX) * (raw >= ALPHA_MIN)
+    start = carry * live
+    after = torch.cumprod(1.0 - alpha, dim=-1) * start[..., None]
+    # a Gaussian counts only while the transmittance after it stays above the cut-off (exclusive);
+    # a pixel's open flag (live) makes start 0, so nothing counts once it is done
+    counted = after > TRANSMITTANCE_MIN
+    before = torch.cat([start[..., None], after[..., :-1]], dim=-1)
+    weight = torch.where(counted, alpha * before, torch.zeros_like(alpha))
+    carry = torch.where(counted, after, carry[..., None]).amin(-1)
+    live = live * counted[..., -1]
+    return raw, alpha, before, counted, weight, carry, live
 
 
 class _Composite(torch.autograd.Function):
-    """Tiled compositing; backward recomputes each chunk so no per-pair tensor outlives its chunk."""
+    """Tiled front-to-back compositing (gsplat's kernel rules) with an analytic backward pass.
+
+    Each chunk of tiles (sorted by list length) walks its lists K_BLOCK Gaussians at a time, dropping
+    tiles whose list has ended, and stops when all its pixels are done; the backward pass walks the
+    same blocks again, so nothing per pixel-Gaussian pair is kept between the passes.
+    """
 
     @staticmethod
     def forward(ctx, means2d, conics, colors, opacities, plan, absgrad):
         C, N, H, W = plan.shape
         D = colors.shape[-1]
         flat = _flat_inputs(means2d, conics, colors, opacities)
+        features = _pixel_features(plan.tile_size, means2d.dtype, means2d.device)
+        P = features.shape[0]
         out_colour = means2d.new_zeros(plan.n_pixels + 1, D)
-        out_alpha = means2d.new_zeros(plan.n_pixels + 1, 1)
-        for (tiles, index, pixel), centres in zip(plan.chunks, plan.pixel_centres):
-            m, q, o, col = (_gather(t, index) for t in flat)
-            colour, alpha = composite(m[:, None] - centres[:, :, None], q, o, col)
+        out_transmittance = means2d.new_ones(plan.n_pixels + 1)
+        blocks = []
+        for index, pixel, tile_centres, lengths in plan.chunks:
+            means, conic, opacity, colour_of = (t[index] for t in flat)
+            coefficients = _log_alpha_coefficients(means, conic, opacity, tile_centres)
+            B, K = index.shape
+            carry, live = means2d.new_ones(B, P), means2d.new_ones(B, P)
+            colour = means2d.new_zeros(B, P, D)
+            n_blocks = 0
+            for begin in range(0, K, K_BLOCK):
+                end = min(begin + K_BLOCK, K)
+                b = _tiles_longer_than(lengths, begin)
+                *_, weight, carry[:b], live[:b] = _block_weights(features, coefficients[:b, :, begin:end], carry[:b], live[:b])
+                colour[:b] += torch.bmm(weight, colour_of[:b, begin:end])
+                n_blocks += 1
+                if not bool(live.any()):
+                    break
+            blocks.append(n_blocks)
             out_colour[pixel] = colour
-            out_alpha[pixel] = alpha
-        ctx.plan, ctx.absgrad = plan, absgrad
-        ctx.save_for_backward(means2d, conics, colors, opacities)
-        return out_colour[:-1].reshape(C, H, W, D), out_alpha[:-1].reshape(C, H, W, 1)
+            out_transmittance[pixel] = carry
+        ctx.plan, ctx.absgrad, ctx.blocks = plan, absgrad, blocks
+        out_colour, out_transmittance = out_colour[:-1], out_transmittance[:-1]
+        ctx.save_for_backward(means2d, conics, colors, opacities, out_colour, out_transmittance)
+        return out_colour.reshape(C, H, W, D), (1.0 - out_transmittance).reshape(C, H, W, 1)
 
     @staticmethod
     def backward(ctx, grad_colour, grad_alpha):
-        means2d, conics, colors, opacities = ctx.saved_tensors
+        means2d, conics, colors, opacities, out_colour, out_transmittance = ctx.saved_tensors
         plan = ctx.plan
         C, N, H, W = plan.shape
         D = colors.shape[-1]
         flat = [t.detach() for t in _flat_inputs(means2d, conics, colors, opacities)]
         grads = [torch.zeros_like(t) for t in flat]
         abs_means = torch.zeros_like(flat[0]) if ctx.absgrad else None
-        grad_colour = torch.cat([grad_colour.reshape(-1, D), grad_colour.new_zeros(1, D)])
-        grad_alpha = torch.cat([grad_alpha.reshape(-1, 1), grad_alpha.new_zeros(1, 1)])
-        for (tiles, index, pixel), centres in zip(plan.chunks, plan.pixel_centres):
-            m, q, o, col = (_gather(t, index) for t in flat)
+        features = _pixel_features(plan.tile_size, means2d.dtype, means2d.device)
+        P = features.shape[0]
+        pad = lambda t: torch.cat([t, t.new_zeros(1, *t.shape[1:])])  # noqa: E731
+        grad_colour = pad(grad_colour.reshape(-1, D))
+        grad_alpha = pad(grad_alpha.reshape(-1))
+        # sum_j w_j (c_j . g) over a pixel's whole list, and T_final (alpha = 1 - T_final)
+        total = pad((out_colour * grad_colour[:-1]).sum(-1))
+        final = torch.cat([out_transmittance, out_transmittance.new_ones(1)])
+        for (index, pixel, tile_centres, lengths), n_blocks in zip(plan.chunks, ctx.blocks):
+            means, conic, opacity, colour_of = (t[index] for t in flat)
+            B, K = index.shape
             with torch.enable_grad():
-                delta = (m[:, None] - centres[:, :, None]).requires_grad_()
-                q, o, col = q.requires_grad_(), o.requires_grad_(), col.requires_grad_()
-                colour, alpha = composite(delta, q, o, col)
-                g_delta, g_q, g_o, g_col = torch.autograd.grad(
-                    (colour, alpha), (delta, q, o, col), (grad_colour[pixel], grad_alpha[pixel])
+                leaves = (means.requires_grad_(), conic.requires_grad_(), opacity.requires_grad_())
+                coefficients = _log_alpha_coefficients(*leaves, tile_centres)
+            g_colour = grad_colour[pixel]  # (B,P,D)
+            # what the successors of a Gaussian and the final transmittance add to the loss
+            residual = total[pixel] - grad_alpha[pixel] * final[pixel]
+            carry, live = means2d.new_ones(B, P), means2d.new_ones(B, P)
+            prefix = means2d.new_zeros(B, P)
+            g_coefficients = torch.zeros_like(coefficients)
+            g_colour_of = torch.zeros_like(colour_of)
+            g_abs = means2d.new_zeros(B, K, 2) if abs_means is not None else None
+            for begin in range(0, min(n_blocks * K_BLOCK, K), K_BLOCK):
+                end = min(begin + K_BLOCK, K)
+                b = _tiles_longer_than(lengths, begin)
+                coefficient = coefficients[:b, :, begin:end].detach()
+                raw, alpha, before, counted, weight, carry[:b], live[:b] = _block_weights(
+                    features, coefficient, carry[:b], live[:b]
                 )
+                colour_dot = torch.bmm(g_colour[:b], colour_of[:b, begin:end].transpose(1, 2))  # (b,P,Kb)
+                through = torch.cumsum(weight * colour_dot, dim=-1) + prefix[:b, :, None]
+                prefix[:b] = through[..., -1]
+                # d/d alpha_i of sum_j w_j c_j.g + (1 - T_final) g_alpha, T_final = prod_j (1 - alpha_j)
+                g_alpha = before * colour_dot - (residual[:b, :, None] - through) / (1.0 - alpha)
+                # clamped (> 0.999) or skipped alphas pass no gradient, as in gsplat's backward kernel
+                differentiable = counted & (raw >= ALPHA_MIN) & (raw <= ALPHA_MAX)
+                g_log = torch.where(differentiable, g_alpha * raw, torch.zeros_like(raw))
+                g_coefficients[:b, :, begin:end] = torch.matmul(features.T, g_log)
+                g_colour_of[:b, begin:end] = torch.bmm(weight.transpose(1, 2), g_colour[:b])
+                if g_abs is not None:
+                    na, nb, nc, nax, nbx, _ = coefficient.unbind(1)  # negated conic terms
+                    u, v = -features[:, 3:4], -features[:, 4:5]  # (P,1)
+                    # per pixel, d sigma / d mean = conic @ (mean - pixel)
+                    d_x = (na[:, None] * u + nb[:, None] * v) - nax[:, None]
+                    d_y = (nb[:, None] * u + nc[:, None] * v) - nbx[:, None]
+                    g_abs[:b, begin:end, 0] = (g_log * d_x).abs().sum(1)
+                    g_abs[:b, begin:end, 1] = (g_log * d_y).abs().sum(1)
+            g_means, g_conic, g_opacity = torch.autograd.grad(coefficients, leaves, g_coefficients)
             flat_index = index.reshape(-1)
-            grads[0].index_add_(0, flat_index, g_delta.sum(1).reshape(-1, 2))
-            grads[1].index_add_(0, flat_index, g_q.reshape(-1, 3))
-            grads[2].index_add_(0, flat_index, g_o.reshape(-1))
-            grads[3].index_add_(0, flat_index, g_col.reshape(-1, D))
-            if abs_means is not None:
-                abs_means.index_add_(0, flat_index, g_delta.abs().sum(1).reshape(-1, 2))
+            for total_grad, g in zip(grads, (g_means, g_conic, g_opacity, g_colour_of)):
+                total_grad.index_add_(0, flat_index, g.reshape(len(flat_index), *total_grad.shape[1:]))
+            if g_abs is not None:
+                abs_means.index_add_(0, flat_index, g_abs.reshape(-1, 2))
         g_means, g_conics, g_opacities, g_colors = (g[:-1] for g in grads)
         if abs_means is not None:
             # gsplat's convention: the strategy reads means2d.absgrad after backward
@@ -324,8 +402,13 @@ class _Composite(torch.autograd.Function):
         )
 
 
+def _tiles_longer_than(lengths, begin):
+    """How many of a chunk's tiles (longest list first) still have Gaussians at position `begin`."""
+    return bisect.bisect_left([-n for n in lengths], -begin)
+
+
 def _flat_inputs(means2d, conics, colors, opacities):
-    """(C*N+1, ...) views with a sentinel last row (opacity 0) for padded slots."""
+    """(C*N+1, ...) copies with a sentinel last row (opacity 0) for padded slots."""
     C, N = opacities.shape
     return [
         torch.cat([means2d.reshape(C * N, 2), means2d.new_zeros(1, 2)]),
