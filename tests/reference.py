@@ -59,7 +59,7 @@ def file_digests(folder):
 
 def splat_render_brute_force(means, quats, scales, opacities, colors, viewmats, Ks, width, height,
                              sh_degree=None, backgrounds=None, render_mode="RGB", near_plane=0.01,
-                             far_plane=1e10, eps2d=0.3, tile_size=16):
+                             far_plane=1e10, eps2d=0.3, rasterize_mode="classic", tile_size=16):
     """Gaussian splatting by brute force: every visible Gaussian at every pixel, one sort per camera.
 
     Projection and SH are gsplat's torch references; compositing follows gsplat's kernel
@@ -71,10 +71,12 @@ def splat_render_brute_force(means, quats, scales, opacities, colors, viewmats, 
     from gsplat.cuda._torch_impl import _fully_fused_projection, _quat_scale_to_covar_preci, _spherical_harmonics
 
     covars, _ = _quat_scale_to_covar_preci(quats, scales, compute_covar=True, compute_preci=False)
-    radii, means2d, depths, conics, _ = _fully_fused_projection(
-        means, covars, viewmats, Ks, width, height, eps2d=eps2d, near_plane=near_plane, far_plane=far_plane
+    radii, means2d, depths, conics, compensations = _fully_fused_projection(
+        means, covars, viewmats, Ks, width, height, eps2d=eps2d, near_plane=near_plane, far_plane=far_plane,
+        calc_compensations=rasterize_mode == "antialiased",
     )
     C = len(viewmats)
+    opacities = opacities[None].expand(C, -1) if compensations is None else opacities * compensations
     if sh_degree is not None:
         centres = torch.inverse(viewmats)[:, :3, 3]
         coeffs = colors.expand(C, -1, -1, -1) if colors.dim() == 3 else colors
@@ -99,7 +101,7 @@ def splat_render_brute_force(means, quats, scales, opacities, colors, viewmats, 
         in_tiles = ((pixel_tiles[:, None] >= tile_min[None]) & (pixel_tiles[:, None] < tile_max[None])).all(-1)
         delta = mean[None] - pixels[:, None]  # (HW, M, 2)
         sigma = 0.5 * (conic[:, 0] * delta[..., 0] ** 2 + conic[:, 2] * delta[..., 1] ** 2) + conic[:, 1] * delta[..., 0] * delta[..., 1]
-        alpha = torch.clamp_max(opacities[visible] * torch.exp(-sigma), 0.999)
+        alpha = torch.clamp_max(opacities[cam, visible] * torch.exp(-sigma), 0.999)
         alpha = torch.where(in_tiles & (sigma >= 0) & (alpha >= 1 / 255), alpha, torch.zeros_like(alpha))
         with torch.no_grad():
             counted = torch.cumprod(1 - alpha, dim=-1) > 1e-4
