@@ -27,11 +27,13 @@ def make_scene(n=200, n_cameras=2, width=40, height=28, channels=3, sh_degree=No
         colors = torch.rand(n, channels, generator=generator)
     else:
         colors = (torch.rand(n, (sh_degree + 1) ** 2, 3, generator=generator) - 0.5) * 0.8
+    opacities = torch.rand(n, generator=generator) * 0.9 + 0.05
+    opacities[::7] = 0.9999  # some alphas clamped at 0.999 at their centre: no gradient there, as in gsplat
     return dict(
         means=torch.randn(n, 3, generator=generator) * 0.6,
         quats=torch.randn(n, 4, generator=generator),
         scales=torch.rand(n, 3, generator=generator) * scale + 0.02,
-        opacities=torch.rand(n, generator=generator) * 0.9 + 0.05,
+        opacities=opacities,
         colors=colors,
         viewmats=viewmats,
         Ks=Ks,
