@@ -3,6 +3,7 @@
     python benchmarks/edit_quality.py              # every scene and protocol (hours on a 2-core CPU)
     python benchmarks/edit_quality.py --quick      # one scene, a few iterations (smoke run)
     python benchmarks/edit_quality.py --replot     # the table again from the results JSON
+    python benchmarks/edit_quality.py --base splatfacto   # the same edits of Gaussian-splat bases
 
 Scenes: `hat` (the demo sphere's edit, which SKED's defaults were tuned on) and the held-out
 `vase` and `crate` (`sked_ns.demo.benchmark_scenes`, defined before any tuning), reported apart;
@@ -12,6 +13,9 @@ the iterations, the rays per batch, the hash-table size and the CPU (nerfstudio'
 download, is skipped: there is no network here). Each edit is `ns-train sked` with reference
 guidance towards the scene's known target; each is scored by `sked-eval --target` at the base
 dataset's evaluation cameras (novel views: none of them is a sketch view) and at the sketch views.
+`--base splatfacto` edits a splatfacto base of each scene instead: `ns-train splatfacto` needs CUDA, so
+it is fitted on the CPU (`sked_ns.demo.splat_base`, SPLAT_FIT, seeded from the scene's surface points as a
+structure-from-motion cloud would be) and saved as `ns-train splatfacto` saves a run; its rows say `splatfacto`.
 
 Protocols (the paper's 10,000 iterations at 128 px are out of a CPU's reach): `cpu-100` is 100
 iterations, `long` 500, both at 24 px renders with a quarter of the base's samples per ray and
@@ -43,6 +47,9 @@ PROTOCOLS = {"cpu-100": {"iterations": 100, "resolution": 24, "samples_per_ray_s
 BASE_ITERATIONS = 400
 BASE_RAYS = 256
 BASE_LOG2_HASHMAP = 15  # nerfacto's default 19 is sized for real scenes; these are 128 px objects
+BASES = ("nerfacto", "splatfacto")
+SPLAT_FIT = {"steps": 200, "num_gaussians": 2000}
+"""The splat bases' CPU fit (`SplatFit` fields; the rest its defaults)."""
 
 
 def run(command: List[str], log: Path) -> None:
@@ -58,6 +65,19 @@ def ns_train(arguments: List[str]) -> List[str]:
     code = ("import sys; from sked_ns.core import without_lpips; from nerfstudio.scripts.train import entrypoint; "
             "sys.argv = ['ns-train'] + sys.argv[1:]\nwith without_lpips(): entrypoint()")
     return [sys.executable, "-c", code, *arguments]
+
+
+def fit_splat_base(scene: str, data: Path, output: Path, fit: Dict, log: Path) -> Path:
+    """A splatfacto run of the scene's photos, fitted on the CPU; its fit's PSNR goes to `log` (JSON)."""
+    from sked_ns.demo.benchmark_scenes import scene_named
+    from sked_ns.demo.splat_base import SplatFit, dataset_point_cloud, fit_splat_base as fit_base, last_fit
+
+    run_dir = output / "splat-base" / "splatfacto" / "base"
+    if not (run_dir / "nerfstudio_models").exists():
+        cloud = dataset_point_cloud(data, scene_named(scene).render_base)
+        fit_base(data, output, SplatFit(**fit), seed_points=cloud, experiment="splat-base")
+        write_text_atomically(log, json.dumps(last_fit, indent=2))
+    return run_dir
 
 
 def train_base(data: Path, output: Path, iterations: int, log: Path) -> Path:
@@ -204,14 +224,14 @@ def _kept_pixels(s: Dict) -> str:
 
 
 def table(results: Dict) -> str:
-    lines = ["| scene | set | protocol | variant | novel PSNR kept, base -> edit (drop) | kept pixels only | leak | "
+    lines = ["| scene | base | set | protocol | variant | novel PSNR kept, base -> edit (drop) | kept pixels only | leak | "
              "region IoS, base -> edit | region IoS where the target shows the part | IoS (min) | "
              "target PSNR changed, base -> edit | s |",
-             "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for row in results["runs"]:
         s = row["summary"]
         lines.append(
-            f"| {row['scene']} | {row['set']} | {row['protocol']} | {row['variant']} | "
+            f"| {row['scene']} | {row.get('base', 'nerfacto')} | {row['set']} | {row['protocol']} | {row['variant']} | "
             f"{s['psnr_keep_gt_base']:.1f} -> {s['psnr_keep_gt']:.1f} ({s['psnr_keep_drop']:+.2f}) | {_kept_pixels(s)} | "
             f"{s['leak']:.4f} | "
             f"{_region_ios(s)} | {_visible_ios(s)} | {s['ios']:.2f} ({s['ios_min']:.2f}) | "
@@ -244,6 +264,11 @@ def _tag(variant: str) -> str:
     return variant.split()[0]
 
 
+def _run_tag(base: str, protocol: str, variant: str) -> str:
+    """The name of a run's files under --work: splat bases' edits apart from nerfacto's."""
+    return f"{'splat-' if base == 'splatfacto' else ''}{protocol}-{_tag(variant)}"
+
+
 def _variant(tag: str) -> str:
     names = [name for name in VARIANTS if _tag(name) == tag.strip()]
     if not names:
@@ -256,7 +281,7 @@ def rescore(output: Path, work: Path) -> None:
     only if its sked-eval JSON holds the recorded IoS (a later run of the same tag replaces the files)."""
     results = json.loads(output.read_text())
     for row in results["runs"]:
-        tag = f"{row['protocol']}-{_tag(row['variant'])}"
+        tag = _run_tag(row.get("base", "nerfacto"), row["protocol"], row["variant"])
         scene_work = work / row["scene"]
         evaluation, edits = scene_work / f"{tag}.eval.json", scene_work / "edits" / tag / row["scene"] / "sked"
         if not (evaluation.exists() and edits.exists()):
@@ -283,6 +308,8 @@ def main() -> None:
                         help="comma-separated variant tags (first words): " + ", ".join(map(_tag, VARIANTS)))
     parser.add_argument("--work", type=Path, default=Path("benchmark_work"), help="datasets, bases, edits, logs")
     parser.add_argument("--output", type=Path, default=RESULTS / "edit_quality.json")
+    parser.add_argument("--base", choices=BASES, default="nerfacto",
+                        help="the bases edited: nerfacto (ns-train nerfacto on the CPU) or splatfacto (fitted on the CPU)")
     parser.add_argument("--replot", action="store_true")
     parser.add_argument("--rescore", action="store_true",
                         help="re-score the sketch views of the recorded runs whose edits are still under --work")
@@ -304,26 +331,32 @@ def main() -> None:
                "base_rays_per_batch": BASE_RAYS, "runs": []}
     if args.output.exists() and not args.quick:
         results["runs"] = json.loads(args.output.read_text()).get("runs", [])
-    done = {(r["scene"], r["protocol"], r["variant"]) for r in results["runs"]}
+    done = {(r["scene"], r.get("base", "nerfacto"), r["protocol"], r["variant"]) for r in results["runs"]}
+    splat = args.base == "splatfacto"
+    if splat:
+        results["splat_fit"] = SPLAT_FIT
     for scene in scenes:
         work = args.work / scene
         paths = {key: work / key for key in ("data", "target", "sketches")}
         if not (work / "sketches" / "sketches.json").exists():
             write_benchmark(scene, work)
         start = time.perf_counter()
-        base = train_base(paths["data"], work / "runs", base_iterations, work / "base.log")
+        if splat:
+            base = fit_splat_base(scene, paths["data"], work / "runs", SPLAT_FIT, work / "splat-base.json")
+        else:
+            base = train_base(paths["data"], work / "runs", base_iterations, work / "base.log")
         print(f"{scene}: base ready ({time.perf_counter() - start:.0f} s)", flush=True)
         for protocol_name, protocol in protocols.items():
             for variant in variants:
-                if (scene, protocol_name, variant) in done:
+                if (scene, args.base, protocol_name, variant) in done:
                     continue
-                tag = f"{protocol_name}-{_tag(variant)}"
+                tag = _run_tag(args.base, protocol_name, variant)
                 start = time.perf_counter()
                 edit_run = edit(base, paths, scene, protocol, work / "edits" / tag, work / f"{tag}.log", VARIANTS[variant])
                 metrics = score(edit_run, paths, work / f"{tag}.eval.json", work / f"{tag}.eval.log")
                 seconds = time.perf_counter() - start
                 summary = {**summarise(metrics), **sketch_view_fill(edit_run, scene, paths["sketches"])}
-                results["runs"].append({"scene": scene, "set": "tuned" if scene in TUNED else "held-out",
+                results["runs"].append({"scene": scene, "base": args.base, "set": "tuned" if scene in TUNED else "held-out",
                                         "protocol": protocol_name, "variant": variant,
                                         "seconds": seconds, "summary": summary})
                 args.output.parent.mkdir(parents=True, exist_ok=True)

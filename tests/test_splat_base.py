@@ -135,3 +135,22 @@ def test_the_fit_learns_the_photos(splat_run):
     fit = splat_run["fit"]
     assert fit["train_psnr"] > fit["seed_psnr"] + 1.0, fit
     assert np.isfinite(fit["eval_psnr"]), fit
+
+
+def test_edit_quality_rows_name_their_base():
+    import sys
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+    import edit_quality
+
+    summary = {"psnr_keep_gt_base": 20.0, "psnr_keep_gt": 19.5, "psnr_keep_drop": 0.5, "leak": 0.01, "ios": 0.9,
+               "ios_min": 0.8, "psnr_target_changed_base": 5.0, "psnr_target_changed": 20.0}
+    rows = [{"scene": "crate", "set": "held-out", "protocol": "cpu-100", "variant": "default", "seconds": 1.0,
+             "summary": summary},  # recorded before splat bases: nerfacto
+            {"scene": "crate", "base": "splatfacto", "set": "held-out", "protocol": "cpu-100", "variant": "default",
+             "seconds": 1.0, "summary": summary}]
+    lines = edit_quality.table({"runs": rows}).splitlines()
+    assert lines[0].startswith("| scene | base |")
+    assert lines[2].startswith("| crate | nerfacto |") and lines[3].startswith("| crate | splatfacto |")
+    # Their files under --work differ, so a splat run never reuses a nerfacto edit.
+    assert edit_quality._run_tag("splatfacto", "cpu-100", "default") != edit_quality._run_tag("nerfacto", "cpu-100", "default")
