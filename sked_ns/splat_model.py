@@ -220,7 +220,10 @@ class SkedSplatModel(SkedEdit, SplatfactoModel):
                                torch.zeros(len(seeds["means"]), dtype=torch.bool)])
         # L_pres's targets, one per editable Gaussian; follow it through densification (_follow_densification).
         self.reference = GaussianSet({**{name: value.clone() for name, value in editable.items()}, "from_base": from_base})
-        self.frozen_gaussians: Dict[str, Tensor] = base  # plain attribute: never optimised or saved
+        # Plain attribute: never optimised or saved. Kept first, as the edit renders them, so that an unchanged edit
+        # renders bit-identically to it (the compositor's sums depend on the order of equal-depth Gaussians' blocks).
+        self.frozen_gaussians: Dict[str, Tensor] = {name: torch.cat([base[name][kept], base[name][~kept]])
+                                                    for name in GAUSSIAN_PARAMS}
         self.strategy = self._strategy()
         self.strategy_state = self.strategy.initialize_state(scene_scale=1.0)
         self._step_infos: List[Dict] = []
@@ -340,15 +343,18 @@ class SkedSplatModel(SkedEdit, SplatfactoModel):
         camera_to_world = camera.camera_to_worlds.reshape(-1, 3, 4)[:1].to(self.device, torch.float32)
         intrinsics = camera.get_intrinsics_matrices().reshape(-1, 3, 3)[:1].to(self.device, torch.float32)
         width, height = int(camera.width.reshape(-1)[0]), int(camera.height.reshape(-1)[0])
-        colours = gaussian_colours(gaussians, camera_to_world[0, :, 3], self.config.sh_degree)
-        if extra is not None:
-            colours = torch.cat([colours, extra.to(colours)], dim=-1)
-        render, alpha, info = rasterize(
-            gaussians["means"], gaussians["quats"], torch.exp(gaussians["scales"]),
-            torch.sigmoid(gaussians["opacities"]).squeeze(-1), colours, viewmat(camera_to_world), intrinsics,
-            width, height, render_mode="RGB+ED" if depth else "RGB", absgrad=self.strategy.absgrad,
-            rasterize_mode=self.config.rasterize_mode,
-        )
+        # gsplat's kernels take float32: a mixed-precision iteration (autocast) must not hand them half floats.
+        with torch.autocast(device_type=self.device.type, enabled=False):
+            gaussians = {name: value.float() for name, value in gaussians.items()}
+            colours = gaussian_colours(gaussians, camera_to_world[0, :, 3], self.config.sh_degree)
+            if extra is not None:
+                colours = torch.cat([colours, extra.float()], dim=-1)
+            render, alpha, info = rasterize(
+                gaussians["means"], gaussians["quats"], torch.exp(gaussians["scales"]),
+                torch.sigmoid(gaussians["opacities"]).squeeze(-1), colours, viewmat(camera_to_world), intrinsics,
+                width, height, render_mode="RGB+ED" if depth else "RGB", absgrad=self.strategy.absgrad,
+                rasterize_mode=self.config.rasterize_mode,
+            )
         render, alpha = render[0], alpha[0]
         outputs = {"rgb": torch.clamp(render[..., :3] + (1 - alpha) * background, 0.0, 1.0), "accumulation": alpha,
                    "background": background}
@@ -380,9 +386,13 @@ class SkedSplatModel(SkedEdit, SplatfactoModel):
 
     @torch.no_grad()
     def render_base(self, camera: Cameras, background: Optional[Tensor] = None) -> Dict[str, Tensor]:
-        """The frozen base seen from `camera`: "rgb", "accumulation", "depth"."""
+        """The frozen base seen from `camera`: "rgb", "accumulation", "depth", "preservation_weight" (rendered as the
+        edit is, the same channels in the same order: an unchanged edit renders bit-identically)."""
         background = self._get_background_color() if background is None else background
-        return self._rasterize(self.frozen_gaussians, camera, background, depth=True)[0]
+        base = self.frozen_gaussians
+        outputs = self._rasterize(base, camera, background, self.preservation_weight(base["means"]), depth=True)[0]
+        outputs["preservation_weight"] = (outputs.pop("extra") + (1 - outputs["accumulation"])).clamp(0, 1)
+        return outputs
 
     # ---- nerfstudio's hooks ----------------------------------------------------------------
     def get_param_groups(self) -> Dict[str, List[Parameter]]:
