@@ -33,7 +33,9 @@ import torch
 from torch import Tensor
 
 TILE_SIZE = 16
-"""Tile edge in pixels, gsplat's default."""
+"""gsplat's tile edge in pixels: which pixels a Gaussian may reach."""
+COMPOSITE_TILE = 8
+"""Tile edge of the CPU compositor: smaller tiles waste fewer pairs on pixels a Gaussian cannot reach."""
 PAIR_BUDGET = 1 << 21
 """Pixel-Gaussian pairs one block of a chunk of tiles holds (each float tensor of a block: 8 MB)."""
 K_BLOCK = 256
@@ -138,7 +140,7 @@ def _rasterize_torch(means, quats, scales, opacities, colors, viewmats, Ks, widt
         if backgrounds is not None:
             backgrounds = backgrounds.new_zeros(C, 1)
 
-    plan = _bin_tiles(means2d.detach(), radii, depths.detach(), width, height)
+    plan = _bin_tiles(means2d.detach(), radii, depths.detach(), conics.detach(), view_opacities.detach(), width, height)
     render, alpha = _Composite.apply(means2d, conics, colors, view_opacities, plan, absgrad)
     if backgrounds is not None:
         render = render + backgrounds[:, None, None, :] * (1.0 - alpha)
@@ -179,27 +181,53 @@ class _TilePlan:
     tile_size: int
 
 
-def _bin_tiles(means2d, radii, depths, width, height, tile_size=TILE_SIZE, pair_budget=None):
-    """Vectorised tile binning with gsplat's rule, sorted by (tile, depth, index), chunked."""
+def _bin_tiles(means2d, radii, depths, conics, opacities, width, height, tile_size=None, pair_budget=None):
+    """Vectorised binning into small tiles, sorted by (tile, depth, index), chunked.
+
+    A Gaussian reaches a pixel only inside gsplat's 16x16 tiles its 3-sigma square touches (gsplat's
+    rule, which `rasterize` must keep to match gsplat), and only where its alpha can reach 1/255 (the
+    bounding box of the ellipse o exp(-sigma) = 1/255, widened a little): pairs outside both would be
+    skipped anyway, so the smaller tiles change no pixel, only how many pairs are evaluated.
+    """
+    tile_size = tile_size or COMPOSITE_TILE
     pair_budget = pair_budget or PAIR_BUDGET
     C, N = radii.shape
     device = means2d.device
+    # gsplat's rule: the 16x16 tiles of the square mean +- radius
+    gsplat_width, gsplat_height = math.ceil(width / TILE_SIZE), math.ceil(height / TILE_SIZE)
+    radius = radii.to(means2d.dtype)
+    gsplat_min = torch.floor((means2d - radius[..., None]) / TILE_SIZE).long()
+    gsplat_max = torch.ceil((means2d + radius[..., None]) / TILE_SIZE).long()
+    limits = torch.tensor([gsplat_width, gsplat_height], device=device)
+    gsplat_min = torch.minimum(gsplat_min.clamp(min=0), limits)
+    gsplat_max = torch.minimum(gsplat_max.clamp(min=0), limits)
+    gsplat_extent = gsplat_max - gsplat_min
+    tiles_per_gauss = (gsplat_extent[..., 0] * gsplat_extent[..., 1]) * (radii > 0)
+    # where alpha >= 1/255: 0.5 d^T conic d <= log(255 o), a box of half-size sqrt(2 log(255 o) cov_ii)
+    a, b, c = conics.unbind(-1)
+    det = a * c - b * b
+    level = torch.log((255.0 * opacities).clamp(min=1e-30))
+    safe_det = torch.where(det > 0, det, torch.ones_like(det))
+    half = torch.sqrt((2.0 * level.clamp(min=0))[..., None] * torch.stack([c, a], dim=-1) / safe_det[..., None])
+    half = torch.where((det > 0)[..., None], half * 1.001 + 0.01, torch.full_like(half, float(max(width, height))))
+    size = torch.tensor([width, height], device=device, dtype=means2d.dtype)
+    # pixel j (centre j + 0.5) is in reach when |j + 0.5 - mean| <= half
+    first_pixel = torch.maximum(torch.ceil(means2d - half - 0.5), (gsplat_min * TILE_SIZE).to(means2d.dtype)).clamp(min=0)
+    last_pixel = torch.minimum(torch.floor(means2d + half - 0.5), (gsplat_max * TILE_SIZE - 1).to(means2d.dtype))
+    last_pixel = torch.minimum(last_pixel, size - 1)
+    reachable = (radii > 0) & (level > 0) & (last_pixel >= first_pixel).all(-1)
+    tile_min = (first_pixel.clamp(min=0, max=max(width, height)) // tile_size).long()
+    tile_max = (last_pixel.clamp(min=0, max=max(width, height)) // tile_size).long() + 1
+    extent = (tile_max - tile_min) * reachable[..., None]
     tile_width, tile_height = math.ceil(width / tile_size), math.ceil(height / tile_size)
     tiles_per_camera = tile_width * tile_height
-    radius = radii.to(means2d.dtype)
-    tile_min = torch.floor((means2d - radius[..., None]) / tile_size).long()
-    tile_max = torch.ceil((means2d + radius[..., None]) / tile_size).long()
-    limits = torch.tensor([tile_width, tile_height], device=device)
-    tile_min = torch.minimum(tile_min.clamp(min=0), limits)
-    tile_max = torch.minimum(tile_max.clamp(min=0), limits)
-    extent = tile_max - tile_min
-    tiles_per_gauss = (extent[..., 0] * extent[..., 1]) * (radii > 0)
+    small_tiles = extent[..., 0] * extent[..., 1]
 
-    camera, gaussian = torch.nonzero(tiles_per_gauss > 0, as_tuple=True)
+    camera, gaussian = torch.nonzero(small_tiles > 0, as_tuple=True)
     # front to back: a stable sort keeps index order among equal depths, as gsplat's radix sort
     order = torch.sort(depths[camera, gaussian], stable=True).indices
     camera, gaussian = camera[order], gaussian[order]
-    counts = tiles_per_gauss[camera, gaussian]
+    counts = small_tiles[camera, gaussian]
     first = torch.cumsum(counts, 0) - counts
     owner = torch.repeat_interleave(torch.arange(len(counts), device=device), counts)
     local = torch.arange(int(counts.sum()), device=device) - first[owner]

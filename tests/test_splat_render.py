@@ -181,7 +181,7 @@ def test_means2d_gradient_matches_finite_differences():
         scene["means"], scene["quats"], scene["scales"], scene["opacities"], scene["viewmats"], scene["Ks"], 20, 20
     )
     colors = scene["colors"][None]
-    plan = splat_render._bin_tiles(means2d, radii, depths, 20, 20)
+    plan = splat_render._bin_tiles(means2d, radii, depths, conics, opacities, 20, 20)
     inputs = [t.detach().double().requires_grad_() for t in (means2d, conics, colors, opacities)]
 
     def composite(m, q, c, o):
