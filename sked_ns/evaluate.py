@@ -91,8 +91,13 @@ def choose_novel_views(pipeline, cameras: str, target: Optional[Path], resolutio
     model = pipeline.model
     background = _background(model)
     transform = pipeline.datamanager.dataparser_transform
+    from nerfstudio.data.dataparsers.nerfstudio_dataparser import NerfstudioDataParserConfig
+
+    # nerfstudio-data folds a file's applied_transform into the run's transform; the others ignore it.
+    nerfstudio_data = isinstance(pipeline.datamanager.config.dataparser, NerfstudioDataParserConfig)
     if target is not None:
-        views, source = novel_views.transforms_views(target, transform, resolution, background, True), f"target {target}"
+        views = novel_views.transforms_views(target, transform, resolution, background, True, nerfstudio_data)
+        source = f"target {target}"
     elif cameras == "eval":
         views, source = novel_views.eval_split_views(pipeline, resolution, background), "the base dataset's eval split"
     elif cameras.startswith("orbit"):
@@ -101,7 +106,8 @@ def choose_novel_views(pipeline, cameras: str, target: Optional[Path], resolutio
                                 for v in model.sketch_set.views]))
         views, source = novel_views.orbit_views(model.edit_box.center, radius, count, resolution), f"an orbit of {count}"
     else:
-        views, source = novel_views.transforms_views(Path(cameras), transform, resolution, background, True), cameras
+        views = novel_views.transforms_views(Path(cameras), transform, resolution, background, True, nerfstudio_data)
+        source = cameras
     if len(views) > max_views:  # evenly spread, first and last included
         views = [views[i] for i in np.linspace(0, len(views) - 1, max_views).round().astype(int)]
     return views, source
@@ -234,9 +240,10 @@ def entrypoint() -> None:
     parser.add_argument("--clip-resolution", type=positive_int, default=128, help="render size of those views")
     parser.add_argument("--cameras", default="eval",
                         help="novel views: 'eval' (the base dataset's eval split), 'orbit[:N]' around the edit box, "
-                             "a transforms.json in the base's data frame, or 'none'")
+                             "a camera file in the base's data frame (nerfstudio-data transforms.json, Blender "
+                             "transforms_<split>.json, or their folder), or 'none'")
     parser.add_argument("--target", type=Path, default=None,
-                        help="ground truth of the intended result (transforms.json + images, the base's data frame): "
+                        help="ground truth of the intended result (a camera file as for --cameras, with its images): "
                              "scored at its cameras inside and outside the changed region")
     parser.add_argument("--novel-resolution", type=positive_int, default=256, help="longer side of the novel-view renders")
     parser.add_argument("--max-novel-views", type=positive_int, default=12, help="at most this many novel views (evenly spread)")

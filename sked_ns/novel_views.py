@@ -26,7 +26,7 @@ from __future__ import annotations
 
 import copy
 import json
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Dict, List, Optional, Sequence
 
@@ -36,6 +36,7 @@ import torch
 from torch import Tensor
 
 from sked_ns.cameras import cameras_of
+from sked_ns.errors import SkedFileNotFoundError, SkedUserError
 from sked_ns.metrics import psnr_outside, ssim_outside
 from sked_ns.sketches import DataparserTransform
 
@@ -43,6 +44,9 @@ KEEP_THRESHOLD = 0.95
 """P above this in base and edit: the pixel shows only what the edit must keep."""
 CHANGED_DIFFERENCE = 0.1
 """Without a changed-region mask: target and base render differ by more than this (any channel)."""
+CAMERA_MODELS = ("SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV", "OPENCV_FISHEYE", "EQUIRECTANGULAR",
+                 "OMNIDIRECTIONALSTEREO_L", "OMNIDIRECTIONALSTEREO_R", "VR180_L", "VR180_R", "ORTHOPHOTO", "FISHEYE624")
+"""transforms.json `camera_model`s, as nerfstudio's CAMERA_MODEL_TO_TYPE names them (checked by a test)."""
 
 
 @dataclass
@@ -92,45 +96,239 @@ def eval_split_views(pipeline, resolution: int, background) -> List[NovelView]:
     return views
 
 
-def transforms_views(path: Path, transform: DataparserTransform, resolution: int, background,
-                     with_images: bool) -> List[NovelView]:
-    """Cameras of a nerfstudio transforms.json in the base's data frame (its images as ground truth)."""
+CAMERA_FILES = ("transforms.json", "transforms_test.json")
+"""A folder's camera file, first found: nerfstudio-data and instant-ngp-data's, then Blender's (and D-NeRF's) test split."""
+DISTORTION_FIELDS = ("k1", "k2", "k3", "k4", "p1", "p2")
+"""nerfstudio's lens distortion fields, in the order of its `distortion_params`."""
+IMPLIED_COLMAP_TRANSFORM = [[0, 1, 0, 0], [1, 0, 0, 0], [0, 0, -1, 0]]
+"""What nerfstudio-data assumes as `applied_transform` for a COLMAP folder whose transforms.json has none."""
+
+
+@dataclass
+class FrameCamera:
+    """One frame of a camera file as nerfstudio's dataparsers read it: the file's frame, the file's resolution."""
+
+    camera_to_world: np.ndarray
+    """3x4, OpenGL axes, in the camera file's frame."""
+    fl_x: float
+    fl_y: float
+    cx: float
+    cy: float
+    width: int
+    height: int
+    camera_model: str = "OPENCV"
+    """A nerfstudio `camera_model` (CAMERA_MODEL_TO_TYPE): perspective, fisheye, equirectangular, ..."""
+    distortion: np.ndarray = field(default_factory=lambda: np.zeros(6))
+    """[k1, k2, k3, k4, p1, p2]."""
+    image: Optional[Path] = None
+    changed_mask: Optional[Path] = None
+    name: str = ""
+
+
+def camera_file(path: Path) -> Path:
+    """The camera file at `path`: the file itself, or a folder's transforms.json or (Blender) transforms_test.json."""
     path = Path(path)
     if path.is_dir():
-        path = path / "transforms.json"
+        for name in CAMERA_FILES:
+            if (path / name).is_file():
+                return path / name
+        raise SkedFileNotFoundError(f"{path}: no camera file here (looked for {' and '.join(CAMERA_FILES)}). Pass a "
+                                    "nerfstudio-data transforms.json, a Blender transforms_<split>.json, or their folder.")
+    if not path.is_file():
+        raise SkedFileNotFoundError(f"{path}: no such camera file. Pass a nerfstudio-data transforms.json, a Blender "
+                                    "transforms_<split>.json, or their folder.")
+    return path
+
+
+def _number(value, where: str, key: str, positive: bool = False) -> float:
+    try:
+        number = float(value)
+    except (TypeError, ValueError):
+        raise SkedUserError(f"{where}: '{key}' must be a number, got {value!r}.") from None
+    if not np.isfinite(number) or (positive and number <= 0):
+        raise SkedUserError(f"{where}: '{key}' must be a finite{' positive' if positive else ''} number, got {value!r}.")
+    return number
+
+
+def _matrix(value, where: str, key: str, rows: int) -> np.ndarray:
+    try:
+        matrix = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        matrix = np.empty(0)
+    if matrix.shape not in ((3, 4), (4, 4)) or not np.all(np.isfinite(matrix)):
+        raise SkedUserError(f"{where}: '{key}' must be a {rows}x4 matrix of finite numbers, got {value!r}.")
+    return matrix[:3]
+
+
+def _image_path(folder: Path, file_path: str) -> Path:
+    """As the dataparsers resolve `file_path`: relative to the file's folder, '.png' added if absent (Blender)."""
+    path = folder / file_path
+    if not path.exists() and (folder / f"{file_path}.png").exists():
+        return folder / f"{file_path}.png"
+    return path
+
+
+def _distortion(entry: dict, where: str) -> np.ndarray:
+    if "distortion_params" in entry:
+        try:
+            coefficients = np.asarray(entry["distortion_params"], dtype=np.float64)
+        except (TypeError, ValueError):
+            coefficients = np.empty(0)
+        if coefficients.shape != (6,) or not np.all(np.isfinite(coefficients)):
+            raise SkedUserError(f"{where}: 'distortion_params' must be 6 numbers [k1, k2, k3, k4, p1, p2], "
+                                f"got {entry['distortion_params']!r}.")
+        return coefficients
+    return np.array([_number(entry[key], where, key) if key in entry else 0.0 for key in DISTORTION_FIELDS])
+
+
+def _focal(get, where: str, axis: str, size: Optional[float]) -> Optional[float]:
+    """fl_x (fl_y) as nerfstudio's dataparsers find it: given, or from x_fov (degrees) or camera_angle_x (radians)."""
+    if get(f"fl_{axis}") is not None:
+        return _number(get(f"fl_{axis}"), where, f"fl_{axis}", positive=True)
+    for key, radians in ((f"{axis}_fov", False), (f"camera_angle_{axis}", True)):
+        if get(key) is not None:
+            angle = _number(get(key), where, key, positive=True)
+            angle = angle if radians else np.radians(angle)
+            if not angle < np.pi:
+                raise SkedUserError(f"{where}: '{key}' is the horizontal field of view and must be under "
+                                    f"{'pi (radians)' if radians else '180 (degrees)'}, got {get(key)!r}.")
+            return None if size is None else 0.5 * size / np.tan(0.5 * angle)
+    return None
+
+
+def read_camera_file(path: Path) -> tuple[Path, dict, List[FrameCamera]]:
+    """(file, its JSON, its frames) of a camera file nerfstudio's dataparsers read, intrinsics resolved as they do.
+
+    - nerfstudio-data (`transforms.json`): fl_x, fl_y, cx, cy, w, h, distortion (k1 ... p2 or distortion_params)
+      at the top level or per frame; a top-level value wins, as in nerfstudio; `camera_model` at the top level.
+    - instant-ngp-data: the same file, with `camera_angle_x` / `x_fov` instead of fl_x, cx and cy at the centre,
+      `is_fisheye`.
+    - Blender (`transforms_<split>.json`): `camera_angle_x` only; w and h are those of the first frame's image,
+      `file_path` has no extension ('.png' is added); poses are used as they are (the dataparser only scales them).
+    """
+    path = camera_file(path)
     try:
         meta = json.loads(path.read_text())
-        frames = meta["frames"]
-    except (OSError, ValueError, KeyError) as error:
-        raise ValueError(f"{path}: not a readable nerfstudio transforms.json with 'frames' ({error}).") from error
+    except (OSError, UnicodeDecodeError, ValueError) as error:
+        raise SkedUserError(f"{path}: not readable as JSON ({error}).") from error
+    frames = meta.get("frames") if isinstance(meta, dict) else None
+    if not isinstance(frames, list) or not frames or not all(isinstance(frame, dict) for frame in frames):
+        raise SkedUserError(f"{path}: expected a JSON object with a non-empty list 'frames' of camera entries, as in "
+                            "nerfstudio's transforms.json or Blender's transforms_<split>.json.")
+    camera_model = "OPENCV_FISHEYE" if meta.get("is_fisheye") else str(meta.get("camera_model", "OPENCV"))
+    if camera_model not in CAMERA_MODELS:
+        raise SkedUserError(f"{path}: unknown 'camera_model' {camera_model!r}; nerfstudio knows "
+                            f"{', '.join(CAMERA_MODELS)}.")
+    image_size = None  # (w, h) of the first frame's image, for files without w and h (Blender)
+    result = []
+    for index, frame in enumerate(frames):
+        where = f"{path} frame {index}"
+        get = lambda key: meta[key] if key in meta else frame.get(key)  # noqa: E731  (a top-level value wins)
+        if "transform_matrix" not in frame:
+            raise SkedUserError(f"{where}: missing 'transform_matrix' (its 4x4 camera-to-world pose).")
+        pose = _matrix(frame["transform_matrix"], where, "transform_matrix", 4)
+        if (get("w") is None or get("h") is None) and image_size is None:
+            image_size = _size_from_image(path, frame, where)
+        width = int(_number(get("w"), where, "w", positive=True)) if get("w") is not None else image_size[0]
+        height = int(_number(get("h"), where, "h", positive=True)) if get("h") is not None else image_size[1]
+        fl_x = _focal(get, where, "x", width)
+        if fl_x is None:
+            raise SkedUserError(f"{where}: no focal length; give 'fl_x' (pixels) or 'camera_angle_x' (radians, "
+                                "Blender) per frame or at the top level, as nerfstudio's dataparsers read it.")
+        fl_y = _focal(get, where, "y", height) or fl_x
+        distortion = _distortion(meta if any(key in meta for key in (*DISTORTION_FIELDS, "distortion_params"))
+                                 else frame, where)
+        result.append(FrameCamera(
+            camera_to_world=pose, fl_x=fl_x, fl_y=fl_y,
+            cx=_number(get("cx"), where, "cx") if get("cx") is not None else width / 2,
+            cy=_number(get("cy"), where, "cy") if get("cy") is not None else height / 2,
+            width=width, height=height, camera_model=camera_model, distortion=distortion,
+            image=_image_path(path.parent, frame["file_path"]) if "file_path" in frame else None,
+            changed_mask=path.parent / frame["changed_mask_path"] if "changed_mask_path" in frame else None,
+            name=Path(frame.get("file_path", f"frame_{index:03d}")).name))
+    return path, meta, result
+
+
+def _size_from_image(path: Path, frame: dict, where: str) -> tuple[int, int]:
+    """(w, h) of a frame's image, read from its header (Blender files carry no w and h)."""
+    from PIL import Image
+
+    if "file_path" not in frame:
+        raise SkedUserError(f"{where}: no 'w' and 'h' and no 'file_path' to read them from; give 'w' and 'h' "
+                            "(pixels) per frame or at the top level.")
+    image = _image_path(path.parent, frame["file_path"])
+    try:
+        with Image.open(image) as opened:
+            return opened.size
+    except OSError as error:
+        raise SkedUserError(f"{where}: no 'w' and 'h', and its image {image} cannot be read ({error}); without 'w' "
+                            "and 'h' they are read from the first frame's image (its 'file_path', '.png' added when "
+                            "absent), as nerfstudio's Blender dataparser does.") from error
+
+
+def file_to_model(transform: DataparserTransform, meta: dict, folder: Path, applies_file_transform: bool = True
+                  ) -> DataparserTransform:
+    """The map from a camera file's poses to the model frame.
+
+    `transform` (the run's dataparser_transforms.json) starts from the *original* data frame; nerfstudio-data
+    files processed from COLMAP and the like hold poses already moved by their `applied_transform` and
+    `applied_scale`, which nerfstudio-data folds into that transform. Undo them, as nerfstudio-data does;
+    other dataparsers (`applies_file_transform=False`: instant-ngp-data, blender-data) ignore both fields.
+    """
+    if not applies_file_transform:
+        return transform
+    where = f"{folder} camera file"
+    if "applied_transform" in meta:
+        applied = _matrix(meta["applied_transform"], where, "applied_transform", 3)
+    elif (folder / "colmap" / "sparse" / "0").exists():
+        applied = np.asarray(IMPLIED_COLMAP_TRANSFORM, dtype=np.float64)
+    else:
+        applied = np.eye(4)[:3]
+    applied_scale = _number(meta.get("applied_scale", 1.0), where, "applied_scale", positive=True)
+    to_data = np.linalg.inv(np.concatenate([applied, [[0.0, 0.0, 0.0, 1.0]]]))
+    matrix = np.concatenate([transform.transform, [[0.0, 0.0, 0.0, 1.0]]]) @ to_data
+    return DataparserTransform(transform=matrix[:3], scale=transform.scale / applied_scale)
+
+
+def frame_camera(frame: FrameCamera, transform: DataparserTransform):
+    """A nerfstudio `Cameras` (one camera, model frame) of a camera-file frame, lens model and distortion kept."""
+    from nerfstudio.cameras.cameras import CAMERA_MODEL_TO_TYPE, Cameras
+
+    pose = torch.tensor(transform.apply(frame.camera_to_world), dtype=torch.float32)
+    return Cameras(camera_to_worlds=pose[None], fx=frame.fl_x, fy=frame.fl_y, cx=frame.cx, cy=frame.cy,
+                   width=frame.width, height=frame.height,
+                   distortion_params=torch.tensor(frame.distortion, dtype=torch.float32)[None],
+                   camera_type=CAMERA_MODEL_TO_TYPE[frame.camera_model])
+
+
+def transforms_views(path: Path, transform: DataparserTransform, resolution: int, background,
+                     with_images: bool, applies_file_transform: bool = True) -> List[NovelView]:
+    """Cameras of a camera file (`read_camera_file`) in the model frame, its images as ground truth.
+
+    `transform`: the base run's dataparser transform; `applies_file_transform`: the base's dataparser is
+    nerfstudio-data (`file_to_model`).
+    """
+    path, meta, frames = read_camera_file(path)
+    to_model = file_to_model(transform, meta, path.parent, applies_file_transform)
     views = []
     for index, frame in enumerate(frames):
-        get = lambda key: frame.get(key, meta.get(key))  # noqa: E731  (per-frame intrinsics override)
-        missing = [key for key in ("fl_x", "w", "h") if get(key) is None]
-        if missing or "transform_matrix" not in frame:
-            raise ValueError(f"{path}: frame {index} lacks {missing or ['transform_matrix']}; give them per frame or "
-                             "at the top level, as nerfstudio's transforms.json does.")
-        pose = transform.apply(np.asarray(frame["transform_matrix"], dtype=np.float64)[:3])
-        width, height = int(get("w")), int(get("h"))
-        camera = cameras_of(torch.tensor(pose[None], dtype=torch.float32), float(get("fl_x")),
-                            float(get("fl_y") or get("fl_x")), float(get("cx") if get("cx") is not None else width / 2),
-                            float(get("cy") if get("cy") is not None else height / 2), width, height)
-        camera = _rescaled(camera, resolution)
+        camera = _rescaled(frame_camera(frame, to_model), resolution)
         ground_truth = changed = None
-        if with_images and "file_path" in frame:
-            ground_truth = _read_image(path.parent / frame["file_path"], path, index)
+        if with_images and frame.image is not None:
+            ground_truth = _read_image(frame.image, path, index)
             ground_truth = torch.from_numpy(_resize(_on_background(ground_truth, background), camera))
-        if with_images and "changed_mask_path" in frame:
-            mask = _read_image(path.parent / frame["changed_mask_path"], path, index)
+        if with_images and frame.changed_mask is not None:
+            mask = _read_image(frame.changed_mask, path, index)
             changed = torch.from_numpy(_resize(mask[..., :3].max(-1), camera) > 0.5)
-        views.append(NovelView(camera, Path(frame.get("file_path", f"frame_{index:03d}")).name, ground_truth, changed))
+        views.append(NovelView(camera, frame.name, ground_truth, changed))
     return views
 
 
 def _read_image(image_path: Path, transforms: Path, index: int) -> np.ndarray:
     image = cv2.imread(str(image_path), cv2.IMREAD_UNCHANGED)
     if image is None:
-        raise ValueError(f"{transforms}: frame {index}'s image {image_path} cannot be read.")
+        raise SkedUserError(f"{transforms} frame {index}: its image {image_path} cannot be read (missing, or not an "
+                            "image OpenCV reads).")
     if image.ndim == 2:
         image = np.repeat(image[..., None], 3, axis=-1)
     image = image[..., [2, 1, 0, 3][: image.shape[-1]]]  # BGR(A) -> RGB(A)

@@ -61,7 +61,7 @@ def test_transforms_cameras_land_in_the_model_frame_with_their_images(scene, tmp
 def test_transforms_without_intrinsics_name_the_file_and_frame(tmp_path):
     path = tmp_path / "transforms.json"
     path.write_text(json.dumps({"frames": [{"transform_matrix": np.eye(4).tolist()}]}))
-    with pytest.raises(ValueError, match=r"transforms.json: frame 0 lacks \['fl_x', 'w', 'h'\]"):
+    with pytest.raises(ValueError, match=r"transforms.json frame 0: no 'w' and 'h' and no 'file_path'"):
         novel_views.transforms_views(path, DataparserTransform(), 32, (1, 1, 1), True)
 
 
