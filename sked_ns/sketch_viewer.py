@@ -3,9 +3,12 @@
     sked-sketch outputs/scene/nerfacto/RUN/config.yml --out my-sketches/      # viewer + SKED panel
     sked-sketch canvases outputs/.../config.yml canvases/ --images 0 7        # renders to paint on
     sked-sketch import canvases/ --out my-sketches/                           # painted canvases -> set
+    sked-sketch check my-sketches/                                            # do the sketches pin the part down?
 
 The viewer is nerfstudio's own (ViewerState); the SKED panel is a folder of viser controls
 driving a `SketchSession`. The base run is only read (the viewer's log goes to a temp folder).
+The panel, `import` and `check` report the set's coverage (`sked_ns.hull_check`): how much larger the
+region the sketches allow looks than each sketch shows, and which view to add when that is too much.
 """
 
 from __future__ import annotations
@@ -22,7 +25,7 @@ from typing import List, Optional
 import numpy as np
 import torch
 
-from sked_ns.sketching import PinholeCamera, SketchSession, import_canvases, write_canvases
+from sked_ns.sketching import PinholeCamera, SketchSession, import_canvases, sketch_set_coverage, write_canvases
 from sked_ns.sketches import SKETCHES_JSON, DataparserTransform
 
 VIEW_WIDTH = 512
@@ -100,6 +103,7 @@ class SketchPanel:
         gui = server.gui
         with gui.add_folder("SKED sketch"):
             self.status = gui.add_markdown("Move to a view of the region, then **Capture view**.")
+            self.coverage = gui.add_markdown("")  # does the set pin the part down (hull_check)?
             self.capture_button = gui.add_button("Capture view")
             self.close_button = gui.add_button("Close scribble", disabled=True)
             self.upload_button = gui.add_upload_button("Upload mask", mime_type="image/png", disabled=True)
@@ -162,11 +166,13 @@ class SketchPanel:
         self._say(f"{len(self.session.views)} view(s)." + (
             f" Edit box {np.round(box.min, 2).tolist()} .. {np.round(box.max, 2).tolist()}." if box else
             " Sketch the same region from a second viewpoint."))
+        self._show_coverage()
 
     def remove_last(self) -> None:
         self.session.remove_view(len(self.session.views) - 1)
         self._show_views()
         self._say(f"{len(self.session.views)} view(s).")
+        self._show_coverage()
 
     def save(self) -> Path:
         path = self.session.save(Path(self.out_text.value))
@@ -187,6 +193,14 @@ class SketchPanel:
     def _say(self, message: str) -> None:
         self.status.content = message
         self.last_message = message
+
+    def _show_coverage(self) -> None:
+        """The hull check of the views so far, a warning when they underdetermine the part."""
+        check = self.session.hull_check()
+        if check is None:
+            self.coverage.content = ""
+        else:
+            self.coverage.content = ("**Warning:** " if check.underdetermined else "") + check.message()
 
     def _set_drawing(self, drawing: bool) -> None:
         for button in (self.close_button, self.upload_button, self.clear_button, self.add_button):
@@ -331,9 +345,23 @@ def entrypoint(argv: Optional[List[str]] = None) -> None:
             print(f"wrote {import_canvases(args.folder, args.out)}")
         except (ValueError, FileNotFoundError, FileExistsError) as error:
             raise SystemExit(f"sked-sketch import: {error}") from error
+        try:
+            print(sketch_set_coverage(args.out).message())
+        except ValueError as error:  # the set is written; an edit would refuse it with this same message
+            print(f"sked-sketch import: the set's coverage could not be checked: {error}")
+        return
+    if argv and argv[0] == "check":
+        parser = argparse.ArgumentParser(prog="sked-sketch check", description="Do a sketch set's views pin the part "
+                                         "down? Prints the coverage report (exit status 0 either way).")
+        parser.add_argument("folder", type=Path, help="sketch set folder (with sketches.json)")
+        args = parser.parse_args(argv[1:])
+        try:
+            print(sketch_set_coverage(args.folder).message())
+        except (ValueError, FileNotFoundError) as error:
+            raise SystemExit(f"sked-sketch check: {error}") from error
         return
     parser = argparse.ArgumentParser(prog="sked-sketch", description=__doc__.split("\n")[0],
-                                     epilog="Subcommands: `canvases` and `import` (headless).")
+                                     epilog="Subcommands: `canvases`, `import` (headless) and `check` (a set's coverage).")
     parser.add_argument("base", type=Path, help="base run folder or its config.yml")
     parser.add_argument("--out", type=Path, required=True, help="folder to save the sketch set into (must be new)")
     parser.add_argument("--port", type=port_number, default=None)

@@ -6,7 +6,9 @@ edit box of the views so far, and save the set. Poses are kept in nerfstudio's m
 (what the viewer shows) and saved in the base's data frame, like sets drawn on training photos.
 
 The headless path renders canvases of the base at training cameras for any paint program
-(`write_canvases`) and reads the painted canvases back (`import_canvases`).
+(`write_canvases`) and reads the painted canvases back (`import_canvases`). Either way the set's
+coverage is reported (`sked_ns.hull_check`): whether the sketches pin the part down, or leave a
+visual hull far bulkier than any sketch shows, and which view to add then.
 """
 
 from __future__ import annotations
@@ -21,18 +23,22 @@ import cv2
 import numpy as np
 
 from sked_ns.edit_box import EditBox, compute_edit_box
+from sked_ns.hull_check import HullCheck, check_hull
 from sked_ns.sketches import (
     SKETCHES_JSON,
     DataparserTransform,
     SketchSet,
     SketchView,
     fill_scribbles,
+    load_sketch_set,
     mask_from_image,
     save_sketch_set,
 )
 
 CANVASES_JSON = "canvases.json"
 STROKE_THRESHOLD = 0.15
+MODEL_UP = np.array([0.0, 0.0, 1.0])
+"""Up in nerfstudio's model frame, where sessions keep their views."""
 """A painted pixel differs from the canvas by more than this (max over channels, colours in [0, 1])."""
 
 
@@ -190,6 +196,12 @@ class SketchSession:
         """Where the sketches meet in 3D (model frame); None with fewer than two views."""
         return compute_edit_box(self.views, scene_box=self.scene_box) if len(self.views) >= 2 else None
 
+    def hull_check(self) -> Optional[HullCheck]:
+        """Do the views pin the part down (`sked_ns.hull_check`)? None with fewer than two views."""
+        box = self.edit_box()
+        # nerfstudio's model frame has +z up (its dataparsers orient the scene so, Blender's is so already).
+        return check_hull(self.views, up=MODEL_UP, box=box) if box is not None else None
+
     def sketch_set(self) -> SketchSet:
         """The views in the base's data frame (portable across dataparser settings)."""
         views = [SketchView(mask=v.mask, camera_to_world=self.transform.invert(v.camera_to_world), fl_x=v.fl_x,
@@ -278,3 +290,9 @@ def import_canvases(folder: Path, out: Path) -> Path:
         raise ValueError(f"{folder}: {len(views)} painted view(s) (none for {', '.join(skipped) or '-'}); save at "
                          "least two as view_XX_sketch.png (painted canvas) or view_XX_mask.png (white on black).")
     return save_sketch_set(SketchSet(views=views, frame=meta.get("frame", "data")), Path(out))
+
+
+def sketch_set_coverage(folder: Path) -> HullCheck:
+    """The hull check of a saved sketch set, in its own frame (up: its model frame's +z, else the cameras' mean up)."""
+    sketch_set = load_sketch_set(Path(folder))
+    return check_hull(sketch_set.views, up=MODEL_UP if sketch_set.frame == "model" else None)
