@@ -62,7 +62,7 @@ def run(command: List[str], log: Path) -> None:
 
 def ns_train(arguments: List[str]) -> List[str]:
     """`ns-train ARGUMENTS`, without nerfstudio's LPIPS metric (it downloads AlexNet weights)."""
-    code = ("import sys; from sked_ns.core import without_lpips; from nerfstudio.scripts.train import entrypoint; "
+    code = ("import sys; from sked_ns.options import without_lpips; from nerfstudio.scripts.train import entrypoint; "
             "sys.argv = ['ns-train'] + sys.argv[1:]\nwith without_lpips(): entrypoint()")
     return [sys.executable, "-c", code, *arguments]
 
@@ -160,7 +160,7 @@ def view_fill(scene: str, data_view, field, beta: float, resolution: int, editab
     (the sketches' SketchDistanceField) gives its preservation weight."""
     import torch
 
-    from sked_ns.cameras import sketch_view_at
+    from sked_ns.sketches import sketch_view_at
     from sked_ns.demo.benchmark_scenes import scene_named, visible_added_part
     from sked_ns.metrics import intersection_over_sketch
 

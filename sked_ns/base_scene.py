@@ -22,6 +22,7 @@ from nerfstudio.models.nerfacto import NerfactoModelConfig
 from torch import Tensor
 
 from sked_ns.errors import SkedFileNotFoundError, SkedUserError
+from sked_ns.options import SkedOptions
 from sked_ns.sketches import DataparserTransform
 
 # What the edit decides, not the base; every other field of the base's model config is copied (its architecture).
@@ -42,8 +43,6 @@ EDIT_OWNED_FIELDS = frozenset({
 def base_family(model_config) -> Optional[str]:
     """nerfacto, instant-ngp or sked (an earlier edit), by the config's type: nerfacto-big and -huge runs
     save method_name "nerfacto", and any nerfacto- or instant-ngp-style config has the field SKED edits."""
-    from sked_ns.core import SkedOptions  # sked_core reads checkpoints through this module
-
     if isinstance(model_config, SkedOptions):
         return "sked"
     if isinstance(model_config, InstantNGPModelConfig):
@@ -55,8 +54,6 @@ def base_family(model_config) -> Optional[str]:
 
 def copy_base_architecture(target, base_model_config) -> None:
     """Make the edit's model the base's shape: every field of the base's model config but the edit's own."""
-    from sked_ns.core import SkedOptions
-
     owned = EDIT_OWNED_FIELDS | {option.name for option in fields(SkedOptions)}
     ours = {f.name for f in fields(target)}
     for name in (f.name for f in fields(base_model_config)):

@@ -9,7 +9,7 @@ rounding floor(x + 1/2) is the same rule for pixel centres at integer coordinate
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Tuple
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
@@ -18,8 +18,6 @@ from torch import Tensor
 
 if TYPE_CHECKING:  # nerfstudio only where a nerfstudio camera is made: the maths above needs none
     from nerfstudio.cameras.cameras import Cameras
-
-    from sked_ns.sketches import SketchView
 
 # Points closer to the camera plane than this (scene units) count as behind it.
 MIN_DEPTH = 1e-6
@@ -130,16 +128,3 @@ def cameras_of(poses: torch.Tensor, fx, fy, cx, cy, width: int, height: int) -> 
         height=torch.full((poses.shape[0], 1), height, dtype=torch.long),
         camera_type=CameraType.PERSPECTIVE,
     )
-
-
-def sketch_view_at(view: SketchView, resolution: int) -> Tuple[Cameras, torch.Tensor]:
-    """A sketch view's camera and mask rescaled so the longer side is `resolution` pixels."""
-    import cv2
-
-    scale = resolution / max(view.width, view.height)
-    width, height = max(1, round(view.width * scale)), max(1, round(view.height * scale))
-    sx, sy = width / view.width, height / view.height
-    mask = cv2.resize(view.mask.astype(np.float32), (width, height), interpolation=cv2.INTER_AREA) > 0.5
-    camera = cameras_of(torch.tensor(view.camera_to_world[None], dtype=torch.float32),
-                        view.fl_x * sx, view.fl_y * sy, view.cx * sx, view.cy * sy, width, height)
-    return camera, torch.from_numpy(mask)

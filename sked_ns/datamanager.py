@@ -3,24 +3,27 @@
 Keeping nerfstudio's `VanillaDataManager` (train dataset, pixel sampler, dataparser
 outputs) is what lets `ns-export`, `ns-render` and the appearance embeddings work on an
 edited scene. SKED adds one random view aimed at the edit box per iteration and the fixed
-sketch views, rendered every iteration at reduced resolution for L_sil.
+sketch views, rendered every iteration at reduced resolution for L_sil. Both come as rays
+(a NeRF renders rays) and as nerfstudio `Cameras` (a splat model renders whole images).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Dict, Optional, Tuple, Type
+from typing import Dict, List, Optional, Tuple, Type
 
 import numpy as np
 import torch
+from nerfstudio.cameras.cameras import Cameras
 from nerfstudio.cameras.rays import RayBundle
 from nerfstudio.data.datamanagers.base_datamanager import VanillaDataManager, VanillaDataManagerConfig
 
-from sked_ns.cameras import cameras_of, sketch_view_at
+from sked_ns.cameras import cameras_of
 from sked_ns.edit_box import EditBox
 from sked_ns.random_views import ELEVATION_RANGE_DEG, FOV_RANGE_DEG, RandomViewSampler, focal_from_fov
-from sked_ns.sketches import SKETCHES_JSON, DataparserTransform, SketchSet, check_declared_frame, load_sketch_set
+from sked_ns.sketches import (SKETCHES_JSON, DataparserTransform, SketchSet, check_declared_frame, load_sketch_set,
+                              sketch_view_at)
 
 
 @dataclass
@@ -80,12 +83,15 @@ class SkedDataManager(VanillaDataManager):
         return DataparserTransform(outputs.dataparser_transform.numpy().astype(np.float64), float(outputs.dataparser_scale))
 
     def attach_sketches(self, sketch_set: SketchSet, edit_box: EditBox, silhouette_resolution: int, guidance_resolution: int) -> None:
-        """Precompute the sketch views' rays and masks, and the random-view sampler."""
+        """Precompute the sketch views (cameras, rays and masks) and the random-view sampler."""
         rays, masks = [], []
+        # Per sketch view its camera (1 view) and mask (H x W, float), on the device: splats render whole views.
+        self.sketch_cameras: List[Tuple[Cameras, torch.Tensor]] = []
         for view in sketch_set.views:
             camera, mask = sketch_view_at(view, silhouette_resolution)
             rays.append(camera.generate_rays(camera_indices=0, keep_shape=True).flatten())
             masks.append(mask)
+            self.sketch_cameras.append((camera.to(self.device), mask.float().to(self.device)))
         # Views may differ in size: rays and masks are kept flat, in the same order.
         self.sketch_rays: RayBundle = _concatenate(rays).to(self.device)
         self.sketch_masks = torch.cat([mask.flatten() for mask in masks]).float().to(self.device)
@@ -99,8 +105,9 @@ class SkedDataManager(VanillaDataManager):
         self.guidance_resolution = guidance_resolution
 
     def next_sked(self, step: int, photo_rays: bool = False) -> Dict:
-        """One random view (rays shaped H x W), the fixed sketch views, and (photo_rays) a batch of the
-        base's training rays with their photo colours, drawn as nerfstudio draws them for training."""
+        """One random view (rays shaped H x W, and its camera), the fixed sketch views (flat rays and masks,
+        and per view a camera and mask), and (photo_rays) a batch of the base's training rays with their photo
+        colours, drawn as nerfstudio draws them for training."""
         generator = torch.Generator().manual_seed(self.config.seed * 1_000_003 + step)  # resumable
         pose, fov, direction = self.random_views.sample(generator)
         size = self.guidance_resolution
@@ -109,9 +116,11 @@ class SkedDataManager(VanillaDataManager):
         ray_bundle = camera.generate_rays(camera_indices=0, keep_shape=True).to(self.device)
         data = {
             "random_view": ray_bundle,
+            "random_view_camera": camera.to(self.device),
             "random_camera": {"camera_to_world": pose, "focal": focal, "direction": direction},
             "sketch_rays": self.sketch_rays,
             "sketch_masks": self.sketch_masks,
+            "sketch_views": self.sketch_cameras,
         }
         if photo_rays:
             rays, batch = self.next_train(step)

@@ -16,14 +16,14 @@ from nerfstudio.models.nerfacto import NerfactoModel, NerfactoModelConfig
 from torch import Tensor
 from torch.nn import Parameter
 
-from sked_ns.preservation import check_beta
-from sked_ns.core import (  # noqa: F401  (re-exported: the public names of the edit model)
-    SkedMixin,
+from sked_ns.core import SkedMixin
+from sked_ns.options import (  # noqa: F401  (re-exported: the public names of the edit model)
     SkedOptions,
     SkedSettingsWarning,
     warn_degenerate_settings,
     without_lpips as _without_lpips,
 )
+from sked_ns.preservation import check_beta
 
 
 @dataclass

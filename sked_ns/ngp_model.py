@@ -23,8 +23,9 @@ from torch.nn import Parameter
 
 from sked_ns.edit_box import occupancy_grid_mask
 from sked_ns.occupancy import PortableOccGridEstimator, render_weights
+from sked_ns.core import SkedMixin
+from sked_ns.options import SkedOptions, without_lpips
 from sked_ns.preservation import check_beta
-from sked_ns.core import SkedMixin, SkedOptions, without_lpips
 
 
 @dataclass

@@ -17,10 +17,10 @@ from nerfstudio.pipelines.base_pipeline import VanillaPipeline, VanillaPipelineC
 from torch.cuda.amp.grad_scaler import GradScaler
 
 from sked_ns.base_scene import check_same_frame, resolve_base
-from sked_ns.core import is_carving
 from sked_ns.datamanager import SkedDataManagerConfig
 from sked_ns.guidance import check_guidance
 from sked_ns.nerfacto_model import SkedNerfactoModelConfig
+from sked_ns.options import is_carving
 
 
 @dataclass
@@ -71,10 +71,7 @@ class SkedPipeline(VanillaPipeline):
     def get_train_loss_dict(self, step: int):
         self.prepare_guidance()
         data = self.datamanager.next_sked(step, photo_rays=self.model.config.effective_lambda_photo > 0)
-        return self.model.get_sked_loss_dict(
-            data["random_view"], data["random_camera"], data["sketch_rays"], data["sketch_masks"], step,
-            photo=data.get("photo"),
-        )
+        return self.model.get_sked_loss_dict(data, step)
 
 
 def refuse_multi_device(world_size: int) -> None:

@@ -7,8 +7,7 @@ from typing import Dict
 
 import torch
 
-from sked_ns.cameras import sketch_view_at
-from sked_ns.sketches import SketchView
+from sked_ns.sketches import SketchView, sketch_view_at
 
 
 def render_camera(model, camera, base: bool = False) -> Dict[str, torch.Tensor]:

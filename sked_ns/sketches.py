@@ -29,14 +29,17 @@ import json
 import math
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import List, Literal, Optional
+from typing import TYPE_CHECKING, List, Literal, Optional, Tuple
 
 import cv2
 import numpy as np
 import torch
 
-from sked_ns.cameras import check_camera_to_world, distort
+from sked_ns.cameras import cameras_of, check_camera_to_world, distort
 from sked_ns.errors import SkedUserError
+
+if TYPE_CHECKING:
+    from nerfstudio.cameras.cameras import Cameras
 
 SKETCHES_JSON = "sketches.json"
 FRAMES = ("data", "model")
@@ -165,6 +168,17 @@ class SketchSet:
             for view in self.views
         ]
         return SketchSet(views=views, frame="model")
+
+
+def sketch_view_at(view: SketchView, resolution: int) -> Tuple[Cameras, torch.Tensor]:
+    """A sketch view's camera and mask rescaled so the longer side is `resolution` pixels."""
+    scale = resolution / max(view.width, view.height)
+    width, height = max(1, round(view.width * scale)), max(1, round(view.height * scale))
+    sx, sy = width / view.width, height / view.height
+    mask = cv2.resize(view.mask.astype(np.float32), (width, height), interpolation=cv2.INTER_AREA) > 0.5
+    camera = cameras_of(torch.tensor(view.camera_to_world[None], dtype=torch.float32),
+                        view.fl_x * sx, view.fl_y * sy, view.cx * sx, view.cy * sy, width, height)
+    return camera, torch.from_numpy(mask)
 
 
 FRAME_MISFIT = math.log(2.0)

@@ -176,7 +176,7 @@ def check_options(options, datamanager=None) -> None:
 def check_sketch_pixels(sketch_set, silhouette_resolution: int) -> List[int]:
     """Each sketch's pixel count in its L_sil render (longer side `silhouette_resolution`): a sketch under one
     pixel there makes L_sil exactly 0 for the whole edit (refused), one under a few pixels barely pulls (warned)."""
-    from sked_ns.cameras import sketch_view_at
+    from sked_ns.sketches import sketch_view_at
 
     counts = [int(sketch_view_at(view, silhouette_resolution)[1].sum()) for view in sketch_set.views]
     empty = [view.name or f"view {i}" for i, (view, count) in enumerate(zip(sketch_set.views, counts)) if count == 0]

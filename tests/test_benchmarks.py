@@ -195,7 +195,7 @@ def test_sketch_view_fill_credits_a_correct_edit_that_kept_content_hides():
 
     import edit_quality
     from sked_ns.demo.benchmark_scenes import SCENES, visible_added_part
-    from sked_ns.cameras import sketch_view_at
+    from sked_ns.sketches import sketch_view_at
     from sked_ns.preservation import SketchDistanceField
 
     views = SCENES["crate"].sketch_set().views

@@ -102,7 +102,7 @@ def test_ngp_base_untouched_and_frozen(ngp_scene, ngp_edited):
 def test_ngp_edit_outputs_preservation_weight_and_resumes(ngp_scene, ngp_edited, tmp_path):
     pipeline = load_pipeline(ngp_edited["run"])
     view = pipeline.model.sketch_set.views[0]
-    from sked_ns.cameras import sketch_view_at
+    from sked_ns.sketches import sketch_view_at
 
     camera = sketch_view_at(view, 24)[0]
     with torch.no_grad():

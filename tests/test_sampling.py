@@ -86,7 +86,7 @@ def test_ngp_base_renders_deterministically_with_its_own_density(ngp_scene, tmp_
 
 
 def _sketch_rays(model):
-    from sked_ns.cameras import sketch_view_at
+    from sked_ns.sketches import sketch_view_at
 
     camera, _ = sketch_view_at(model.sketch_set.views[0], 24)
     return camera.generate_rays(camera_indices=0, keep_shape=True).flatten()

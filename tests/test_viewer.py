@@ -126,7 +126,7 @@ def test_steering_controls_change_what_the_viewer_shows(scene, tmp_path):
     model.viewer_show_base.value = True
     assert torch.equal(render_at(model, view, 24)["rgb"], base["rgb"])
     model.viewer_show_base.value = False
-    from sked_ns.cameras import sketch_view_at
+    from sked_ns.sketches import sketch_view_at
 
     camera = sketch_view_at(view, 24)[0]
     model.eval()
