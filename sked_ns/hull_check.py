@@ -22,6 +22,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from itertools import product
+from pathlib import Path
 from typing import List, Optional, Sequence
 
 import numpy as np
@@ -156,7 +157,8 @@ def check_hull(views: Sequence[SketchView], up: Optional[np.ndarray] = None, box
     points, spacing = hull_samples(field, box)
     if len(points) < 8:  # a hull thinner than the grid: sample it finer once
         points, spacing = hull_samples(field, box, 4 * GRID_SAMPLES)
-    names = [view.name or f"view {index}" for index, view in enumerate(views)]
+    # A saved view's name is its mask's path: the file name is enough (and keeps the viewer panel narrow).
+    names = [Path(view.name).name if view.name else f"view {index}" for index, view in enumerate(views)]
     sights = [sketch_direction(view) for view in views]
     directions = _probe_directions(sights)
     pixel = float(spacing.max())

@@ -105,7 +105,9 @@ def test_sked_sketch_check_prints_the_warning(tmp_path, capsys):
     save_sketch_set(SketchSet(views=views_of(STICK, SIDE_VIEWS), frame="model"), tmp_path / "two")
     save_sketch_set(SketchSet(views=views_of(STICK, SIDE_VIEWS + (FROM_ABOVE,)), frame="model"), tmp_path / "three")
     entrypoint(["check", str(tmp_path / "two")])
-    assert "underdetermine the part" in capsys.readouterr().out
+    out = capsys.readouterr().out
+    assert "underdetermine the part" in out and "Add a sketch from above" in out
+    assert "view_00.png " in out and str(tmp_path) not in out, "views named by their mask's file name"
     entrypoint(["check", str(tmp_path / "three")])
     assert "Add a sketch" not in capsys.readouterr().out
     with pytest.raises(SystemExit, match="sked-sketch check: .*no sketch set here"):
