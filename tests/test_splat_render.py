@@ -174,6 +174,29 @@ def test_front_to_back_order():
     assert centre[0] > 0.95 and centre[2] < 0.05
 
 
+def test_gsplat_tile_rule_bounds_a_gaussian():
+    """A Gaussian reaches no pixel outside the 16x16 tiles of its 3-sigma square, even where its alpha >= 1/255.
+
+    Centre at x = 20 with radius 12: gsplat's tiles end at pixel 31; pixel 32 (12.5 px away) would get
+    alpha ~ 0.007 > 1/255 without the rule.
+    """
+    sigma_px = math.sqrt(15.57)  # 2D variance + eps2d 0.3 + gsplat's 0.1 puts 3 sqrt(v1) just under 12
+    scene = make_scene(n=1, n_cameras=1, width=48, height=16)
+    scene.update(
+        viewmats=straight_camera(),
+        Ks=torch.tensor([[[40.0, 0, 20.0], [0, 40.0, 8.0], [0, 0, 1]]]),
+        means=torch.zeros(1, 3),
+        quats=torch.tensor([[1.0, 0, 0, 0]]),
+        scales=torch.full((1, 3), sigma_px * 3.0 / 40.0),
+        opacities=torch.tensor([0.99]),
+    )
+    render, alpha, info = rasterize(**scene)
+    assert int(info["radii"][0, 0]) == 12
+    assert 0.99 * math.exp(-0.5 * 12.5**2 / (sigma_px**2 + 0.3)) > 1 / 255
+    assert alpha[0, 8, 31, 0] > 1 / 255 and alpha[0, 8, 32, 0] == 0
+    assert_same_as_reference(scene)
+
+
 def test_means2d_gradient_matches_finite_differences():
     """The compositor's analytic backward (means2d, conics, colours, opacities) against central differences."""
     scene = make_scene(n=12, n_cameras=1, width=20, height=20, seed=10, scale=0.3)
