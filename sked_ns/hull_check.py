@@ -156,7 +156,7 @@ def check_hull(views: Sequence[SketchView], up: Optional[np.ndarray] = None, box
     field = SketchDistanceField(views)
     points, spacing = hull_samples(field, box)
     if len(points) < 8:  # a hull thinner than the grid: sample it finer once
-        points, spacing = hull_samples(field, box, 4 * GRID_SAMPLES)
+        points, spacing = hull_samples(field, box, 2 * GRID_SAMPLES)
     # A saved view's name is its mask's path: the file name is enough (and keeps the viewer panel narrow).
     names = [Path(view.name).name if view.name else f"view {index}" for index, view in enumerate(views)]
     sights = [sketch_direction(view) for view in views]
