@@ -103,9 +103,20 @@ def test_spherical_harmonics(sh_degree):
     assert_same_as_reference(scene, sh_degree=sh_degree)
 
 
-def test_sh_degree_below_the_coefficients_given():
+def test_sh_degree_below_the_coefficients_given_and_per_camera_coefficients():
     scene = make_scene(sh_degree=3, seed=3)
     assert_same_as_reference(scene, sh_degree=1)
+    scene["colors"] = (torch.rand(2, 200, 4, 3, generator=torch.Generator().manual_seed(3)) - 0.5) * 0.8
+    assert_same_as_reference(scene, sh_degree=1)
+
+
+def test_wrong_shapes_are_refused():
+    scene = make_scene(n=10, sh_degree=1)
+    with pytest.raises(ValueError, match="colors has shape"):
+        rasterize(**scene, sh_degree=2)  # degree 2 needs 9 coefficients, 4 given
+    scene["opacities"] = scene["opacities"][:, None]
+    with pytest.raises(ValueError, match=r"opacities has shape \(10, 1\)"):
+        rasterize(**scene, sh_degree=1)
 
 
 def test_four_channels_and_per_camera_colours():
