@@ -79,5 +79,8 @@ def refuse_multi_device(world_size: int) -> None:
     if world_size > 1:
         raise ValueError(
             f"SKED edits on one device, but this run has {world_size} processes (--machine.num-devices x "
-            "--machine.num-machines). Run with --machine.num-devices 1 --machine.num-machines 1."
+            "--machine.num-machines). Run with --machine.num-devices 1 --machine.num-machines 1. Two ways scale "
+            "instead: a second GPU for the diffusion model (pipeline.model.guidance:stable-diffusion "
+            "--pipeline.model.guidance.device cuda:1), and many edits at once, one per GPU, here or as a Slurm job "
+            "array: sked-batch (README, 'Many edits: sked-batch')."
         )

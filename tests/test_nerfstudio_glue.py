@@ -102,9 +102,10 @@ def test_autocast_dtype_is_skeds(tmp_path):
     assert seen == [torch.float16] and torch.get_autocast_dtype("cpu") == torch.bfloat16
 
 
-def test_multi_device_is_refused_naming_the_flag():
-    with pytest.raises(ValueError, match="--machine.num-devices"):
+def test_multi_device_is_refused_naming_the_flag_and_the_ways_that_scale():
+    with pytest.raises(ValueError, match="--machine.num-devices") as refused:
         SkedPipeline(SkedPipelineConfig(), device="cpu", world_size=2)
+    assert "--pipeline.model.guidance.device cuda:1" in str(refused.value) and "sked-batch" in str(refused.value)
 
 
 # ---- compat: nerfstudio 1.1.5 here, main's behaviour on stubs -------------------------------
