@@ -130,6 +130,27 @@ def split_subcommands(tokens: List[str]) -> Tuple[List[str], List[str]]:
     return options, subcommands
 
 
+def subcommand_sections(tokens: List[str]) -> Dict[str, List[str]]:
+    """`pipeline.model.guidance:reference --pipeline.model.guidance.x 1` -> {"pipeline.model.guidance": [...]}."""
+    sections: Dict[str, List[str]] = {}
+    current = None
+    for token in tokens:
+        if SUBCOMMAND.match(token):
+            current = token.split(":")[0]
+            sections[current] = []
+        sections[current].append(token)
+    return sections
+
+
+def merged_flags(defaults: Tuple[str, ...], own: Tuple[str, ...]) -> Tuple[str, ...]:
+    """The plan's default flags, then the edit's (later flags win in ns-train); subcommands after every plain
+    flag, an edit's subcommand replacing the default one it names (`pipeline.model.guidance:...`)."""
+    default_options, default_subcommands = split_subcommands(list(defaults))
+    options, subcommands = split_subcommands(list(own))
+    sections = {**subcommand_sections(default_subcommands), **subcommand_sections(subcommands)}
+    return tuple(default_options + options + [token for section in sections.values() for token in section])
+
+
 def slug(text: str, limit: int = 40) -> str:
     """Prompt words for a folder name: `a red chef hat` -> `a-red-chef-hat`."""
     words = re.sub(r"[^a-z0-9]+", "-", text.lower()).strip("-")
@@ -274,8 +295,8 @@ def _edit_jobs(check, label, index, entry, defaults, edit, root, output, check_p
     preset = entry.get("preset", "sked")
     if preset not in PRESETS:
         check.fail(f"{label}.preset", f"{preset!r}: one of {', '.join(PRESETS)}.")
-    # The plan's defaults first, the edit's own after them (later flags win in ns-train).
-    flags = check.tokens("defaults.flags", defaults.get("flags")) + check.tokens(f"{label}.flags", edit.get("flags"))
+    flags = merged_flags(check.tokens("defaults.flags", defaults.get("flags")),
+                         check.tokens(f"{label}.flags", edit.get("flags")))
     for token in flags:
         flag = token.split("=")[0]
         if flag in SET_BY_PLAN:

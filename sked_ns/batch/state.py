@@ -58,9 +58,10 @@ def job_record(job: Job) -> dict:
 
 
 def changed(job: Job) -> Optional[str]:
-    """How the plan's job differs from the one this folder ran (None: the same, or never run)."""
+    """How the plan's job differs from the edit this folder holds (None: the same, or nothing saved yet: a job
+    that failed before its first checkpoint simply runs with the plan's new command)."""
     saved = read_marker(job, "job")
-    if saved is None:
+    if saved is None or (progress(job)[0] == 0 and read_marker(job, "done") is None):
         return None
     now = job_record(job)
     differs = [key for key in ("train", "eval") if saved.get(key) != now[key]]

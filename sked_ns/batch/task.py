@@ -51,7 +51,7 @@ def run_stage(job: Job, command: List[str], env: Optional[Dict[str, str]]) -> in
     """One command, its output appended to the job's log."""
     job.log.parent.mkdir(parents=True, exist_ok=True)
     with open(job.log, "a") as log:
-        log.write(f"\n=== {now()} {this_owner()}\n$ {' '.join(_quoted(command))}\n")
+        log.write(f"\n=== {now()}, {_where(this_owner())}\n$ {' '.join(_quoted(command))}\n")
         log.flush()
         resolved = [executable(command[0])] + command[1:]
         return subprocess.run(resolved, stdout=log, stderr=subprocess.STDOUT, env=env).returncode
@@ -89,11 +89,10 @@ def run_job(job: Job, env: Optional[Dict[str, str]] = None) -> int:
     if reason is not None:
         print(f"{job.name}: {reason}; nothing to do")
         return 0
-    record = job_record(job)
-    if read_marker(job, "job") is None:
-        write_marker(job, "job", record)
     if not finished(job):
         step, _ = progress(job)
+        if not step:  # a new edit: this is the command its run folder will hold
+            write_marker(job, "job", job_record(job))
         command = job.resume_command() if step else job.train_command()
         print(f"{job.name}: {'resuming from step ' + str(step) if step else 'editing'}; log {job.log}", flush=True)
         code = run_stage(job, command, env)
