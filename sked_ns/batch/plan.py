@@ -94,8 +94,12 @@ class Job:
         if self.seed is not None:
             command += ["--machine.seed", str(self.seed)]
         command += self._where()
-        if not any(option == "--vis" or option.startswith("--vis=") for option in options):
+        vis = [options[i + 1] if option == "--vis" and i + 1 < len(options) else option.partition("=")[2]
+               for i, option in enumerate(options) if option == "--vis" or option.startswith("--vis=")]
+        if not vis:
             command += ["--vis", "tensorboard"]  # nerfstudio's viewer would keep the job alive after training
+        elif "viewer" in vis[-1] and not any(o.startswith("--viewer.quit-on-train-completion") for o in options):
+            command += ["--viewer.quit-on-train-completion", "True"]  # the job ends when the edit does
         return command + options + subcommands + list(self.dataparser) + ["--data", str(self.data)]
 
     def resume_command(self) -> List[str]:
@@ -121,33 +125,35 @@ class Plan:
         raise SkedUserError(f"{self.path}: no job named {name!r}; its jobs are: {', '.join(j.name for j in self.jobs)}.")
 
 
-def split_subcommands(tokens: List[str]) -> Tuple[List[str], List[str]]:
-    """Plain flags first, subcommands (each with the flags after it) last: tyro reads them in that order."""
-    options, subcommands, inside = [], [], False
-    for token in tokens:
-        inside = inside or bool(SUBCOMMAND.match(token))
-        (subcommands if inside else options).append(token)
-    return options, subcommands
-
-
-def subcommand_sections(tokens: List[str]) -> Dict[str, List[str]]:
-    """`pipeline.model.guidance:reference --pipeline.model.guidance.x 1` -> {"pipeline.model.guidance": [...]}."""
+def split_flags(tokens: List[str]) -> Tuple[List[str], Dict[str, List[str]]]:
+    """Plain flags (each with its values), and each subcommand with its own flags, keyed by what it sets:
+    `pipeline.model.guidance:reference --pipeline.model.guidance.x 1` -> {"pipeline.model.guidance": [...]}.
+    A flag outside the subcommand's own (`--max-num-iterations` after it) is a plain flag."""
+    options: List[str] = []
     sections: Dict[str, List[str]] = {}
     current = None
     for token in tokens:
         if SUBCOMMAND.match(token):
             current = token.split(":")[0]
             sections[current] = []
-        sections[current].append(token)
-    return sections
+        elif token.startswith("--") and current is not None and not token.startswith(f"--{current}."):
+            current = None
+        (sections[current] if current is not None else options).append(token)
+    return options, sections
+
+
+def split_subcommands(tokens: List[str]) -> Tuple[List[str], List[str]]:
+    """Plain flags first, subcommands (each with its own flags) last: tyro reads them in that order."""
+    options, sections = split_flags(tokens)
+    return options, [token for section in sections.values() for token in section]
 
 
 def merged_flags(defaults: Tuple[str, ...], own: Tuple[str, ...]) -> Tuple[str, ...]:
     """The plan's default flags, then the edit's (later flags win in ns-train); subcommands after every plain
     flag, an edit's subcommand replacing the default one it names (`pipeline.model.guidance:...`)."""
-    default_options, default_subcommands = split_subcommands(list(defaults))
-    options, subcommands = split_subcommands(list(own))
-    sections = {**subcommand_sections(default_subcommands), **subcommand_sections(subcommands)}
+    default_options, default_sections = split_flags(list(defaults))
+    options, sections = split_flags(list(own))
+    sections = {**default_sections, **sections}
     return tuple(default_options + options + [token for section in sections.values() for token in section])
 
 
@@ -164,13 +170,18 @@ def read_plan_file(path: Path) -> dict:
     text = path.read_text()
     try:
         if path.suffix == ".toml":
-            import tomllib
+            try:
+                import tomllib
+            except ImportError:  # Python 3.10
+                raise SkedUserError(f"{path}: TOML plans need Python 3.11 or later; write the plan in YAML.") from None
 
             data = tomllib.loads(text)
         else:
             import yaml
 
             data = yaml.safe_load(text)
+    except SkedUserError:
+        raise
     except Exception as error:  # the parser's message says where
         raise SkedUserError(f"{path}: cannot read the plan: {error}") from error
     if not isinstance(data, dict):
