@@ -244,8 +244,10 @@ def test_absgrad_sums_per_pixel_magnitudes():
 def test_hidden_gaussians_are_ignored():
     """Gaussians behind the camera, beyond the far plane or off the image change nothing and get no gradient."""
     scene = make_scene(n=60, n_cameras=1, seed=13)
+    scene["viewmats"] = straight_camera()
     (render, alpha, _), _ = render_both(scene)
-    hidden = torch.tensor([[0.0, 0.0, -3.5], [0.0, 0.0, -6.0], [40.0, 0.0, 0.0], [0.0, -30.0, 1.0], [0.0, 0.0, 200.0]])
+    # behind, on the camera's plane (z = 0: gsplat's torch projection divides by it), off the image, too far
+    hidden = torch.tensor([[0.0, 0.0, -3.5], [0.1, 0.0, -3.0], [0.0, 0.0, -6.0], [40.0, 0.0, 0.0], [0.0, -30.0, 1.0], [0.0, 0.0, 200.0]])
     extended = dict(scene)
     n_hidden = len(hidden)
     extended.update(
