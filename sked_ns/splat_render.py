@@ -553,7 +553,7 @@ def compare_with_gsplat(device="cuda", n_gaussians=2000, width=96, height=64, sh
     weights = torch.rand(len(scene["viewmats"]), height, width, 4, generator=torch.Generator().manual_seed(seed + 1))
 
     def run(target, render_fn, **extra):
-        leaves = {k: scene[k].to(target).requires_grad_() for k in inputs}
+        leaves = {k: scene[k].to(target).clone().requires_grad_() for k in inputs}
         rest = {k: (v.to(target) if isinstance(v, Tensor) else v) for k, v in scene.items() if k not in inputs}
         render, alpha, info = render_fn(**leaves, **rest, absgrad=True, **extra)
         info["means2d"].retain_grad()
@@ -566,7 +566,7 @@ def compare_with_gsplat(device="cuda", n_gaussians=2000, width=96, height=64, sh
         visible = (info["radii"] > 0)[..., None]
         for key in ("grad_means2d", "absgrad"):
             values[key] = torch.where(visible, values[key], torch.zeros_like(values[key]))
-        return {k: v.detach().float().cpu() for k, v in values.items()}
+        return {k: v.detach().float().cpu().clone() for k, v in values.items()}
 
     theirs = run(device, rasterization, packed=False)
     ours = run("cpu", _rasterize_torch_defaults)

@@ -358,6 +358,14 @@ def test_compare_with_gsplat_runs(monkeypatch):
     assert all(value == 0 for key, value in result.items() if not key.endswith("_scale"))
     assert result["image_scale"] > 0 and result["grad_means_scale"] > 0
 
+    def one_percent_brighter(*args, packed=True, **kwargs):
+        render, alpha, info = splat_render._rasterize_torch_defaults(*args, **kwargs)
+        return render * 1.01, alpha, info
+
+    monkeypatch.setattr(gsplat.rendering, "rasterization", one_percent_brighter)
+    result = splat_render.compare_with_gsplat("cpu", n_gaussians=300, width=32, height=24)
+    assert result["image"] > 0.005 and result["grad_means"] > 0 and result["alpha"] == 0
+
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA: compares with gsplat's kernels")
 def test_cpu_path_matches_gsplat_cuda():
