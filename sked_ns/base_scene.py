@@ -19,6 +19,7 @@ import torch
 import yaml
 from nerfstudio.models.instant_ngp import InstantNGPModelConfig
 from nerfstudio.models.nerfacto import NerfactoModelConfig
+from nerfstudio.models.splatfacto import SplatfactoModelConfig
 from torch import Tensor
 
 from sked_ns.errors import SkedFileNotFoundError, SkedUserError
@@ -37,14 +38,22 @@ EDIT_OWNED_FIELDS = frozenset({
     "proposal_weights_anneal_max_num_iters",
     "camera_optimizer",  # the edit keeps the base's cameras; the base's mode goes to base_camera_optimizer
     "edit_box_density", "grid_update_interval",  # SKED's sampling of the edit box
+    # splatfacto: the edit's seeds and kept set, and schedules of training from scratch (an edit starts from a
+    # trained base, at full resolution and SH degree, without opacity resets)
+    "keep_threshold", "num_seeds", "seed_opacity", "seed_size", "reset_alpha_every", "warmup_length", "refine_every",
+    "stop_split_at", "stop_screen_size_at", "sh_degree_interval", "resolution_schedule", "num_downscales",
+    "random_init", "num_random", "random_scale",
 })
 
 
 def base_family(model_config) -> Optional[str]:
-    """nerfacto, instant-ngp or sked (an earlier edit), by the config's type: nerfacto-big and -huge runs
-    save method_name "nerfacto", and any nerfacto- or instant-ngp-style config has the field SKED edits."""
+    """nerfacto, instant-ngp, splatfacto or sked (an earlier edit), by the config's type: nerfacto-big and -huge
+    runs save method_name "nerfacto", splatfacto-big "splatfacto", and any nerfacto- or instant-ngp-style config has
+    the field SKED edits."""
     if isinstance(model_config, SkedOptions):
         return "sked"
+    if isinstance(model_config, SplatfactoModelConfig):
+        return "splatfacto"
     if isinstance(model_config, InstantNGPModelConfig):
         return "instant-ngp"
     if isinstance(model_config, NerfactoModelConfig):
@@ -162,7 +171,8 @@ def resolve_base(load_dir: Path, step: Optional[int] = None) -> BaseScene:
     if base_family(model_config) is None:
         raise SkedUserError(
             f"{config_path}: the base was trained with '{method}' ({type(model_config).__name__}); sked edits "
-            "nerfacto (also -big, -huge) and instant-ngp (also -bounded) scenes, and its own edits."
+            "nerfacto (also -big, -huge), instant-ngp (also -bounded) and splatfacto (also -big) scenes, and its own "
+            "edits."
         )
     return BaseScene(run_dir=run_dir, checkpoint=checkpoint, config=config)
 

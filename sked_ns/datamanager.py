@@ -104,10 +104,10 @@ class SkedDataManager(VanillaDataManager):
         )
         self.guidance_resolution = guidance_resolution
 
-    def next_sked(self, step: int, photo_rays: bool = False) -> Dict:
+    def next_sked(self, step: int, photo_rays: bool = False, photo_view: bool = False) -> Dict:
         """One random view (rays shaped H x W, and its camera), the fixed sketch views (flat rays and masks,
         and per view a camera and mask), and (photo_rays) a batch of the base's training rays with their photo
-        colours, drawn as nerfstudio draws them for training."""
+        colours, drawn as nerfstudio draws them for training, or (photo_view) one whole training photo."""
         generator = torch.Generator().manual_seed(self.config.seed * 1_000_003 + step)  # resumable
         pose, fov, direction = self.random_views.sample(generator)
         size = self.guidance_resolution
@@ -125,7 +125,27 @@ class SkedDataManager(VanillaDataManager):
         if photo_rays:
             rays, batch = self.next_train(step)
             data["photo"] = (rays.to(self.device), batch["image"].to(self.device))
+        if photo_view:
+            data["photo_view"] = self.photo_view(step)
         return data
+
+    def photo_view(self, step: int) -> Dict:
+        """The base's training photo `step` mod their number, whole, with its camera, for a model that renders
+        images (splats): {"camera", "image" (H, W, C) float, "index"}, its longer side at most the guidance
+        resolution (area-averaged), cached."""
+        dataset = self.train_dataset
+        index = step % len(dataset)
+        cache = self.__dict__.setdefault("_photo_views", {})
+        if index not in cache:
+            camera = dataset.cameras[index:index + 1]
+            camera.rescale_output_resolution(min(1.0, self.guidance_resolution / float(max(camera.width, camera.height))))
+            size = (int(camera.height), int(camera.width))
+            image = dataset.get_image_float32(index)
+            if tuple(image.shape[:2]) != size:
+                image = torch.nn.functional.interpolate(image.permute(2, 0, 1)[None], size=size,
+                                                        mode="area")[0].permute(1, 2, 0)
+            cache[index] = {"camera": camera.to(self.device), "image": image.to(self.device), "index": index}
+        return cache[index]
 
 
 def _concatenate(bundles) -> RayBundle:

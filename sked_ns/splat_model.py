@@ -56,7 +56,8 @@ NEVER = 1 << 30
 @dataclass
 class SkedSplatModelConfig(SplatfactoModelConfig, SkedOptions):
     """SKED on a splatfacto scene. Architecture fields (SH degree, rasterize mode, background, refinement
-    thresholds) are copied from the base (base_scene.copy_base_architecture); the schedules are the edit's."""
+    thresholds) are copied from the base (base_scene.copy_base_architecture); the schedules and the fields below are
+    the edit's (base_scene.EDIT_OWNED_FIELDS)."""
 
     _target: Type = field(default_factory=lambda: SkedSplatModel)
     keep_threshold: float = 0.99
@@ -90,13 +91,6 @@ def splat_optimizers(iterations: int) -> Dict[str, Dict]:
             for name, lr in rates.items()}
 
 
-SPLAT_EDIT_OWNED_FIELDS = frozenset({
-    "keep_threshold", "num_seeds", "seed_opacity", "seed_size", "reset_alpha_every",
-    # schedules of training from scratch: the edit starts from a trained base, at full resolution and SH degree
-    "warmup_length", "refine_every", "stop_split_at", "stop_screen_size_at", "sh_degree_interval",
-    "resolution_schedule", "num_downscales", "random_init", "num_random", "random_scale",
-})
-"""Fields of SkedSplatModelConfig that are the edit's, not copied from the base (base_scene.EDIT_OWNED_FIELDS)."""
 
 
 class GaussianSet(torch.nn.Module):
@@ -190,6 +184,8 @@ class SkedSplatModel(SkedEdit, SplatfactoModel):
     """Kept Gaussians (buffers) + editable Gaussians (splatfacto's parameters) + frozen base + sketches + guidance."""
 
     config: SkedSplatModelConfig
+    PHOTOS_AS_IMAGES = True
+    """The base-photo anchor takes whole training images (the datamanager's `photo_view`), not ray batches."""
 
     # ---- set-up ---------------------------------------------------------------------------
     def populate_modules(self) -> None:

@@ -20,6 +20,7 @@ from typing import Optional, Type
 import torch
 from nerfstudio.engine.trainer import Trainer, TrainerConfig
 from nerfstudio.models.instant_ngp import InstantNGPModelConfig
+from nerfstudio.models.splatfacto import SplatfactoModelConfig
 from nerfstudio.utils.decorators import check_main_thread
 from nerfstudio.utils.rich_utils import CONSOLE
 
@@ -32,6 +33,7 @@ from sked_ns.safe_step import GuardedGradScaler, GuardedOptimizers, StepGuard
 from sked_ns.core import SkedOptions
 from sked_ns.nerfacto_model import SkedNerfactoModelConfig
 from sked_ns.ngp_model import SkedNGPModelConfig
+from sked_ns.splat_model import SkedSplatModelConfig, splat_optimizers
 from sked_ns.validation import check_options
 
 
@@ -117,6 +119,8 @@ def start_edit(config: SkedTrainerConfig, base: BaseScene) -> None:
     """A new edit of `base`: the model shaped like it, starting at step 0 from its weights."""
     model = config.pipeline.model = edit_model_config(config.pipeline.model, base.model_config)
     model.base_checkpoint = base.checkpoint
+    if isinstance(model, SkedSplatModelConfig):  # the presets' optimisers are a NeRF's: Gaussians take splatfacto's
+        config.optimizers = splat_optimizers(config.max_num_iterations)
     config.load_dir = None  # the base is not a run to resume: fresh optimisers, step 0
     config.load_step = None
     CONSOLE.print(f"Editing the {base.method} scene {base.run_dir} ({base.checkpoint.name})")
@@ -135,8 +139,14 @@ def check_data(config: TrainerConfig, base: BaseScene) -> None:
 
 
 def edit_model_config(model, base_model_config):
-    """The SKED model for the base's sampler (grid or proposals), shaped like the base, keeping SKED's options."""
-    wanted = SkedNGPModelConfig if isinstance(base_model_config, InstantNGPModelConfig) else SkedNerfactoModelConfig
+    """The SKED model for the base's representation (Gaussians) or sampler (grid or proposals), shaped like the base,
+    keeping SKED's options."""
+    if isinstance(base_model_config, SplatfactoModelConfig):
+        wanted = SkedSplatModelConfig
+    elif isinstance(base_model_config, InstantNGPModelConfig):
+        wanted = SkedNGPModelConfig
+    else:
+        wanted = SkedNerfactoModelConfig
     if not isinstance(model, wanted):
         options = {option.name: getattr(model, option.name) for option in fields(SkedOptions)}
         model = wanted(**options, eval_num_rays_per_chunk=model.eval_num_rays_per_chunk)

@@ -206,9 +206,9 @@ def test_unsupported_base_method(scene, tmp_path):
     run = tmp_path / "run"
     shutil.copytree(scene["base"], run)
     config = yaml.load((run / "config.yml").read_text(), Loader=yaml.Loader)
-    config.method_name, config.pipeline.model = "splatfacto", method_configs["splatfacto"].pipeline.model
+    config.method_name, config.pipeline.model = "vanilla-nerf", method_configs["vanilla-nerf"].pipeline.model
     (run / "config.yml").write_text(yaml.dump(config))
-    with pytest.raises(ValueError, match="trained with 'splatfacto'"):
+    with pytest.raises(ValueError, match="trained with 'vanilla-nerf'"):
         resolve_base(run)
 
 

@@ -161,7 +161,9 @@ def test_nerfacto_style_bases_are_recognised_by_config_type(tmp_path, method):
 
 
 def test_other_models_are_refused():
-    assert base_family(method_configs["splatfacto"].pipeline.model) is None
+    assert base_family(method_configs["vanilla-nerf"].pipeline.model) is None
+    assert base_family(method_configs["splatfacto"].pipeline.model) == "splatfacto"
+    assert base_family(method_configs["splatfacto-big"].pipeline.model) == "splatfacto"
     assert base_family(method_configs["instant-ngp"].pipeline.model) == "instant-ngp"
     assert base_family(SkedNGPModelConfig()) == "sked"
 
