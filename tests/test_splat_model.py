@@ -287,3 +287,29 @@ def test_ns_train_sked_edits_a_splatfacto_run_exports_it_and_resumes(splat_scene
     resumed = run_edit(resume_config(trainer.base_dir, tmp_path / "resumed", iterations=5))
     assert resumed.pipeline.model.sked_step == 4
     assert torch.equal(resumed.pipeline.model.kept.means, base["means"][kept])
+
+
+def test_photo_anchor_removes_a_floater_in_front_of_a_training_photo(splat_scene, tmp_path):
+    for lambda_photo in (1.0, 0.0):
+        _, pipeline = edit_pipeline(splat_scene, tmp_path, lambda_photo=lambda_photo)
+        model = pipeline.model
+        photo = pipeline.datamanager.photo_view(0)
+        assert photo["image"].shape[:2] == (int(photo["camera"].height), int(photo["camera"].width))
+        safe = model._photo_pixels_kept(photo["camera"], 0)
+        assert 0.2 < float(safe.float().mean()) < 1.0  # rays through the sketched region are left to the edit
+        # A floater: an opaque editable Gaussian half-way along a safe pixel's ray.
+        rays = photo["camera"].generate_rays(camera_indices=0, keep_shape=True)
+        row, column = [int(i) for i in safe.nonzero()[len(safe.nonzero()) // 2]]
+        floater = rays.origins[row, column] + 0.5 * rays.directions[row, column]
+        with torch.no_grad():
+            model.gauss_params["means"][-1] = floater
+            model.gauss_params["scales"][-1] = math.log(0.03)
+            model.gauss_params["opacities"][-1] = 3.0
+        model.train()
+        data = pipeline.datamanager.next_sked(0, photo_view=lambda_photo > 0)
+        losses = model.get_sked_loss_dict(data, 0)[1]
+        if lambda_photo == 0:
+            assert "photo_loss" not in losses and "photo_view" not in pipeline.datamanager.next_sked(0)
+            continue
+        losses["photo_loss"].backward()
+        assert float(model.gauss_params["opacities"].grad[-1]) > 0  # descent fades the floater
