@@ -18,6 +18,8 @@ def render_camera(model, camera, base: bool = False) -> Dict[str, torch.Tensor]:
     with torch.no_grad():
         if not base:
             outputs = model.get_outputs_for_camera(camera)
+        elif _renders_whole_cameras(model):
+            outputs = model.render_base(camera)  # a splat edit rasterizes its frozen base per camera, not per ray
         else:
             rays = camera.generate_rays(camera_indices=0, keep_shape=True)
             shape = rays.shape
@@ -31,6 +33,13 @@ def render_camera(model, camera, base: bool = False) -> Dict[str, torch.Tensor]:
     if "preservation_weight" in outputs:  # SKED models: 1 where the pixel shows only what must be kept
         result["preservation_weight"] = outputs["preservation_weight"][..., 0].cpu()
     return result
+
+
+def _renders_whole_cameras(model) -> bool:
+    """Gaussian-splat models render a camera at once (splatfacto's get_outputs), NeRFs ray bundles."""
+    from nerfstudio.models.splatfacto import SplatfactoModel
+
+    return isinstance(model, SplatfactoModel)
 
 
 def render_at(model, view: SketchView, resolution: int) -> Dict[str, torch.Tensor]:
