@@ -154,3 +154,23 @@ def test_edit_quality_rows_name_their_base():
     assert lines[2].startswith("| crate | nerfacto |") and lines[3].startswith("| crate | splatfacto |")
     # Their files under --work differ, so a splat run never reuses a nerfacto edit.
     assert edit_quality._run_tag("splatfacto", "cpu-100", "default") != edit_quality._run_tag("nerfacto", "cpu-100", "default")
+
+
+def test_sked_demo_edits_a_splat_base_and_sked_eval_scores_it(tmp_path):
+    """`sked-demo --base splatfacto`: the real `ns-train sked` edit of a CPU-fitted splatfacto run, before/after renders
+    of the edit's frozen base, novel views; then `sked-eval` on that edit."""
+    from sked_ns.demo.run import run
+
+    quick = SplatFit(steps=20, num_gaussians=300, warmup_length=10, refine_every=10, seed_opacity=0.5)
+    summary = run(tmp_path / "demo", size=32, iterations=6, base="splatfacto", splat_fit=quick)
+    assert summary["base"] == "splatfacto"
+    assert "/splatfacto/" in str(next((tmp_path / "demo" / "base").glob("*/splatfacto/*/config.yml")))
+    for view in summary["views"]:
+        assert view["ios_edit"] > view["ios_base"]  # the seeds grew into the sketches
+        assert view["psnr_outside"] > 25  # and the rest is the base's
+    assert summary["novel_views"]["mean"]["psnr_keep"] > 30
+    from sked_ns.evaluate import evaluate
+
+    scores = evaluate(Path(summary["edit_run"]), resolution=32, novel_resolution=32, clip_views=2, clip_resolution=16)["metrics"]
+    assert scores["mean"]["psnr_outside"] > 25 and scores["novel_views"]["mean"]["psnr_keep"] > 30
+    assert scores["mean"]["ios"] > scores["mean"]["ios_base"]

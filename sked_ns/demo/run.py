@@ -1,7 +1,8 @@
 """`sked-demo`: a real SKED edit of the embedded demo scene, end to end, on the CPU.
 
-1. writes the demo dataset (an analytic sphere) and fits a tiny nerfacto base to it,
-   saved exactly as `ns-train nerfacto` saves a run;
+1. writes the demo dataset (an analytic sphere) and fits a tiny nerfacto base to it, or with
+   `--base splatfacto` a Gaussian-splat base, saved exactly as `ns-train nerfacto` (`splatfacto`)
+   saves a run;
 2. writes two sketches of a hat on top and renders their preservation-weight field;
 3. runs `ns-train sked` on it: reference guidance (renders of the sphere with its hat) when
    no Stable Diffusion weights are available, text-prompt guidance when they are;
@@ -91,12 +92,31 @@ def choose_guidance(prompt: Optional[str], model: str) -> str:
     return "reference"
 
 
-def run(output: Path, beta: float = 0.025, size: int = 128, iterations: int = 100, base_steps: int = 600,
-        prompt: Optional[str] = None, diffusion_model: str = "CompVis/stable-diffusion-v1-4", device: str = "cpu") -> dict:
+BASES = ("nerfacto", "splatfacto")
+
+
+def fit_base(kind: str, data: Path, folder: Path, base_steps: Optional[int], splat_fit=None) -> Path:
+    """The demo base: a tiny nerfacto fitted to the analytic scene (600 steps unless given), or splatfacto fitted
+    to the photos (`splat_fit`, a SplatFit: its defaults unless given)."""
+    if kind == "splatfacto":
+        from sked_ns.demo.splat_base import SplatFit, fit_demo_splat_base, last_fit
+
+        run_dir = fit_demo_splat_base(data, folder, splat_fit or SplatFit())
+        print(f"splatfacto base: {last_fit['gaussians']} Gaussians, PSNR {last_fit['train_psnr']:.1f} dB on its "
+              f"photos, {last_fit['eval_psnr']:.1f} dB on the held-out ones")
+        return run_dir
+    return build_demo_base(data, folder, steps=600 if base_steps is None else base_steps)
+
+
+def run(output: Path, beta: float = 0.025, size: int = 128, iterations: int = 100, base_steps: Optional[int] = None,
+        prompt: Optional[str] = None, diffusion_model: str = "CompVis/stable-diffusion-v1-4", device: str = "cpu",
+        base: str = "nerfacto", splat_fit=None) -> dict:
     from sked_ns.edit_run import edit_config, run_edit
-    from sked_ns.render import load_pipeline, render_at, resized_mask
+    from sked_ns.render import load_pipeline, render_at, render_base_at, resized_mask
 
     check_beta(beta)
+    if base not in BASES:
+        raise ValueError(f"--base: no demo base {base!r}; choose one of {', '.join(BASES)}.")
     output = Path(output).resolve()  # absolute paths in config.yml: ns-* commands work from anywhere
     if output.exists() and any(output.iterdir()) and not (output / MARKER).exists():
         raise FileExistsError(f"{output} exists and was not made by sked-demo: choose another --output.")
@@ -105,7 +125,7 @@ def run(output: Path, beta: float = 0.025, size: int = 128, iterations: int = 10
 
     data = output / "data"
     demo_scene.write_demo_dataset(data)
-    base_run = build_demo_base(data, output / "base", steps=base_steps)
+    base_run = fit_base(base, data, output / "base", base_steps, splat_fit)
     save_sketch_set(demo_scene.demo_sketch_set(), output / "sketches", overwrite=True)
     sketches = load_sketch_set(output / "sketches")  # the user's path: from disk
     transform = DataparserTransform.from_json(base_run / "dataparser_transforms.json")
@@ -119,11 +139,17 @@ def run(output: Path, beta: float = 0.025, size: int = 128, iterations: int = 10
         config.pipeline.model.guidance.model = diffusion_model
     trainer = run_edit(config)
 
-    base_model = load_pipeline(base_run, device).model
     edit_model = trainer.pipeline.model
+    if base == "splatfacto":
+        # nerfstudio's splatfacto renders with gsplat's CUDA kernels only: the edit's frozen copy of the base
+        # (exactly its Gaussians) renders it here.
+        render_base = lambda view: render_base_at(edit_model, view, size)  # noqa: E731
+    else:
+        base_model = load_pipeline(base_run, device).model
+        render_base = lambda view: render_at(base_model, view, size)  # noqa: E731
     rows, views = [], []
     for view in sketches.in_model_frame(transform).views:
-        before, after, mask = render_at(base_model, view, size), render_at(edit_model, view, size), resized_mask(view, size)
+        before, after, mask = render_base(view), render_at(edit_model, view, size), resized_mask(view, size)
         views.append({"ios_base": intersection_over_sketch(before["accumulation"], mask),
                       "ios_edit": intersection_over_sketch(after["accumulation"], mask),
                       "psnr_outside": psnr_outside(after["rgb"], before["rgb"], mask)})
@@ -137,7 +163,7 @@ def run(output: Path, beta: float = 0.025, size: int = 128, iterations: int = 10
     _write_png(output / "novel_views.png", np.concatenate([row.numpy() for row in novel.pop("rows")], axis=0))
     summary["novel_views"] = novel
     summary.update(
-        guidance=guidance, iterations=iterations, edit_run=str(trainer.base_dir), views=views,
+        base=base, guidance=guidance, iterations=iterations, edit_run=str(trainer.base_dir), views=views,
         ios_mean=float(np.mean([v["ios_edit"] for v in views])),
         psnr_outside_mean=float(np.mean([v["psnr_outside"] for v in views])),
         images=[str(output / "preservation_weights.png"), str(output / "before_after.png"),
@@ -159,10 +185,12 @@ def entrypoint() -> None:
     parser.add_argument("--iterations", type=int, default=100, help="edit iterations")
     parser.add_argument("--prompt", default=None, help="text for Stable Diffusion guidance (needs its weights)")
     parser.add_argument("--diffusion-model", default="CompVis/stable-diffusion-v1-4", help="hub id or local folder")
+    parser.add_argument("--base", choices=BASES, default="nerfacto",
+                        help="the base edited: a tiny nerfacto, or a splatfacto (Gaussian splats) fitted on the CPU")
     parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
     args = parser.parse_args()
     summary = run(args.output, args.beta, args.size, args.iterations, prompt=args.prompt,
-                  diffusion_model=args.diffusion_model, device=args.device)
+                  diffusion_model=args.diffusion_model, device=args.device, base=args.base)
     print(
         f"\nmean preservation weight on the hat {summary['mean_weight_on_hat']:.3f} (free to change), "
         f"on the sphere {summary['mean_weight_on_sphere']:.3f} (kept)\n"
