@@ -92,6 +92,28 @@ def train_base(data: Path, output: Path, iterations: int, log: Path) -> Path:
     return run_dir
 
 
+def step_time(scene: str, work: Path, protocol: Dict) -> Dict:
+    """CPU seconds per edit iteration of the scene's splatfacto and nerfacto bases at the same render size: edits of
+    5 and 25 iterations each, the difference of their CPU time (set-up cancels) over 20. The nerfacto base is a
+    30-iteration `ns-train nerfacto` (the step cost is its architecture's, not its quality's)."""
+    import resource
+
+    paths = {key: work / key for key in ("data", "target", "sketches")}
+    bases = {"splatfacto": fit_splat_base(scene, paths["data"], work / "runs", SPLAT_FIT, work / "splat-base.json"),
+             "nerfacto": train_base(paths["data"], work / "runs-steptime", 30, work / "steptime-base.log")}
+    timings = {}
+    for kind, base in bases.items():
+        cpu = {}
+        for iterations in (5, 25):
+            before = resource.getrusage(resource.RUSAGE_CHILDREN)
+            run(ns_train(edit_arguments(base, paths, scene, {**protocol, "iterations": iterations},
+                                        work / "steptime" / f"{kind}-{iterations}")), work / f"steptime-{kind}-{iterations}.log")
+            after = resource.getrusage(resource.RUSAGE_CHILDREN)
+            cpu[iterations] = after.ru_utime + after.ru_stime - before.ru_utime - before.ru_stime
+        timings[kind] = {"cpu_s_per_step": (cpu[25] - cpu[5]) / 20, "cpu_s_5_and_25_iterations": [cpu[5], cpu[25]]}
+    return timings
+
+
 def edit_arguments(base: Path, paths: Dict[str, Path], scene: str, protocol: Dict, output: Path,
                    extra: Optional[List[str]] = None) -> List[str]:
     """The `ns-train` arguments of one edit, as a user types them (a variant's guidance flags go after its
@@ -310,6 +332,9 @@ def main() -> None:
     parser.add_argument("--output", type=Path, default=RESULTS / "edit_quality.json")
     parser.add_argument("--base", choices=BASES, default="nerfacto",
                         help="the bases edited: nerfacto (ns-train nerfacto on the CPU) or splatfacto (fitted on the CPU)")
+    parser.add_argument("--step-time", metavar="SCENE", default=None,
+                        help="only time a CPU edit step of SCENE's splatfacto and nerfacto bases (cpu-100's render size; "
+                             "run with OMP_NUM_THREADS=1 for one core); prints JSON")
     parser.add_argument("--replot", action="store_true")
     parser.add_argument("--rescore", action="store_true",
                         help="re-score the sketch views of the recorded runs whose edits are still under --work")
@@ -319,6 +344,14 @@ def main() -> None:
         return
     if args.rescore:
         rescore(args.output, args.work)
+        return
+    if args.step_time:
+        from sked_ns.demo.benchmark_scenes import write_benchmark
+
+        work = args.work / args.step_time
+        if not (work / "sketches" / "sketches.json").exists():
+            write_benchmark(args.step_time, work)
+        print(json.dumps(step_time(args.step_time, work, PROTOCOLS["cpu-100"]), indent=2))
         return
     from sked_ns.demo.benchmark_scenes import write_benchmark
 
