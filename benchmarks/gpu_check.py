@@ -1,5 +1,5 @@
-"""The whole CUDA path in one command: bases, SDS edits (nerfacto and instant-ngp), the bare SD step,
-the CUDA marcher against the torch one, and the CUDA-only tests.
+"""The whole CUDA path in one command: bases, SDS edits (nerfacto, instant-ngp and splatfacto), the bare SD
+step, the CUDA marcher against the torch one, gsplat against the CPU splat compositor, and the CUDA-only tests.
 
     python benchmarks/gpu_check.py                            # on a GPU: full-size SD v1.x, paper's settings
     python benchmarks/gpu_check.py --device cpu --size tiny   # a smoke run anywhere (a test runs it)
@@ -13,8 +13,10 @@ b. Writes SD v1.x's architecture with RANDOM weights to a local folder (honest t
    nerfacc's CUDA occupancy grid.
 c. In the same process, times the bare compiled SD step (VAE encode forward + backward and the
    batch-2 UNet) that every SDS iteration must pay: the floor an edit step is compared with.
-d. Checks nerfacc's CUDA marcher against the torch marcher on the edit's own grid, and runs
-   the tests that only run on CUDA.
+d. Checks nerfacc's CUDA marcher against the torch marcher on the edit's own grid, gsplat's
+   rasterization against sked_ns.splat_render's CPU compositor (images and gradients), edits a
+   splatfacto base of the demo scene (fitted with the torch rasterizer; gsplat renders the edit on
+   CUDA), and runs the tests that only run on CUDA.
 e. Writes benchmarks/results/gpu_check.json: per edit the setup, compile and per-iteration
    times (steady iterations, the end-of-training save left out), the 10,000-iteration extrapolation
    (compile, each checkpoint once and evaluation images included), the ratio to the SD floor, the
@@ -53,7 +55,7 @@ sys.path.insert(0, str(BENCHMARKS))
 
 PAPER_ITERATIONS = 10_000
 PROMPT = "a red chef hat"
-EDIT_BASES = {"nerfacto": "nerfacto", "ngp": "instant-ngp"}  # each edit and the method of its base
+EDIT_BASES = {"nerfacto": "nerfacto", "ngp": "instant-ngp", "splat": "splatfacto"}  # each edit and the method of its base
 
 
 class Check:
@@ -401,6 +403,17 @@ def marcher_check(check: Check, trainer, args) -> dict:
     return result
 
 
+def splat_raster_check(device: str) -> dict:
+    """gsplat's CUDA rasterization vs sked_ns.splat_render's CPU compositor on one random scene: each image and
+    gradient's largest difference, relative to gsplat's largest value."""
+    from sked_ns.splat_render import compare_with_gsplat
+
+    differences = compare_with_gsplat(device)
+    relative = {key: differences[key] / max(differences.get(f"{key}_scale", 0.0), 1e-12)
+                for key in differences if not key.endswith("_scale")}
+    return {"max_abs": differences, "relative": relative, "worst_relative": max(relative.values())}
+
+
 def cuda_tests(check: Check) -> dict:
     """The tests that only run on CUDA (skipped on the CPU CI)."""
     tests = BENCHMARKS.parent / "tests"
@@ -486,6 +499,7 @@ def main() -> None:
     os.environ.setdefault("HF_HUB_OFFLINE", "1")  # never the hub: the diffusion model is built here, random weights
     from sked_ns.demo import scene as demo_scene
     from sked_ns.demo.base import TinyNerfacto, build_demo_base
+    from sked_ns.demo.splat_base import SplatFit, fit_demo_splat_base
     from sked_ns.sketches import save_sketch_set
     from sds_iteration import build_random_stable_diffusion
 
@@ -500,8 +514,12 @@ def main() -> None:
             timing = {}
             for method in [method for edit, method in EDIT_BASES.items() if edit not in skip]:  # none for a skipped edit
                 start = time.perf_counter()
-                bases[method] = build_demo_base(work / "data", work / "bases", steps=args.base_steps, tiny=tiny,
-                                                method=method, device=args.device)
+                if method == "splatfacto":  # fitted with the torch rasterizer: the base is the same on any device
+                    bases[method] = fit_demo_splat_base(work / "data", work / "bases",
+                                                        SplatFit() if full else SplatFit(steps=40, num_gaussians=500))
+                else:
+                    bases[method] = build_demo_base(work / "data", work / "bases", steps=args.base_steps, tiny=tiny,
+                                                    method=method, device=args.device)
                 sync(args.device)
                 timing[f"{method}_seconds"] = time.perf_counter() - start
             check.result["bases"] = {**timing, "steps": args.base_steps,
@@ -529,6 +547,14 @@ def main() -> None:
                 check.phase("marcher_check", lambda: marcher_check(check, trainer, args))
                 if "ratio_to_sd_floor" not in check.result["ngp"] and "sd_floor_ms" in check.result:
                     check.result["ngp"]["ratio_to_sd_floor"] = check.result["ngp"]["ms_per_iteration"] / check.result["sd_floor_ms"]
+            del trainer
+        if "splat" not in skip and "splatfacto" in bases:
+            if args.device == "cuda":  # the CPU compositor against gsplat's kernels, image and gradients
+                check.phase("splat_raster_check", lambda: splat_raster_check(args.device))
+            trainer = check.phase("splat_edit", lambda: run_edit(check, "splat", bases["splatfacto"], work, sd_folder, args),
+                                  needs_s=90 if full else 0)
+            if trainer is not None and "sd_floor_ms" in check.result:
+                check.result["splat"]["ratio_to_sd_floor"] = check.result["splat"]["ms_per_iteration"] / check.result["sd_floor_ms"]
             del trainer
         if args.device == "cuda" and "tests" not in skip:
             check.phase("cuda_tests", lambda: cuda_tests(check), needs_s=60)

@@ -75,11 +75,12 @@ def test_gpu_check_smoke_run_on_the_cpu(tmp_path):
     assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
     data = json.loads(output.read_text())
     assert data["failed_phases"] == []
-    for edit in ("nerfacto", "ngp"):
+    for edit in ("nerfacto", "ngp", "splat"):
         entry = data[edit]
         assert entry["iterations"] == 3 and entry["ms_per_iteration"] > 0 and entry["ratio_to_sd_floor"] > 0
         assert entry["extrapolated_10k_seconds"] > 10_000 * entry["ms_per_iteration"] / 1000
     assert data["ngp"]["model"] == "SkedNGPModel" and data["nerfacto"]["model"] == "SkedNerfactoModel"
+    assert data["splat"]["model"] == "SkedSplatModel" and "splat_raster_check" not in data["phases"]  # CUDA only
     assert data["marcher_check"]["relative_difference"] == 0.0  # the same torch marcher on both sides here
     assert data["ms_per_iteration"] == data["nerfacto"]["ms_per_iteration"] and data["sd_floor_ms"] > 0
     assert data["nerfacto"]["final_save_seconds"] > 0 and data["peak_rss_gb"] >= data["nerfacto"]["peak_rss_gb"] > 0.1
