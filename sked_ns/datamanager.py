@@ -72,7 +72,7 @@ class SkedDataManager(VanillaDataManager):
     def __init__(self, *args, **kwargs):
         super().__init__(*args, **kwargs)
         # nerfstudio hands the train dataset's metadata to the model: the sketch set needs this frame.
-        self.train_dataset.metadata[SKETCH_FRAME] = self.dataparser_transform
+        self.train_dataset.metadata[SKETCH_FRAME] = self.data_frame_transform
         self.train_dataset.metadata[TRAINING_CAMERAS] = (
             self.train_dataset.cameras.camera_to_worlds[:, :, 3].numpy().astype(np.float64),
             self.train_dataparser_outputs.scene_box.get_center().numpy().astype(np.float64))
@@ -81,6 +81,13 @@ class SkedDataManager(VanillaDataManager):
     def dataparser_transform(self) -> DataparserTransform:
         outputs = self.train_dataparser_outputs
         return DataparserTransform(outputs.dataparser_transform.numpy().astype(np.float64), float(outputs.dataparser_scale))
+
+    @property
+    def data_frame_transform(self) -> DataparserTransform:
+        """A sketch set's data frame (the data's transforms.json) -> model frame (novel_views.data_frame_transform)."""
+        from sked_ns.novel_views import data_frame_transform
+
+        return data_frame_transform(self.config.dataparser, self.dataparser_transform)
 
     def attach_sketches(self, sketch_set: SketchSet, edit_box: EditBox, silhouette_resolution: int, guidance_resolution: int) -> None:
         """Precompute the sketch views (cameras, rays and masks) and the random-view sampler."""

@@ -129,7 +129,7 @@ def evaluate(edit_run: Path, base_run: Optional[Path] = None, sketches: Optional
     edit_pipeline = load_pipeline(edit.run_dir, device)
     # The edit holds a frozen copy of its own base: render that unless another base is asked for.
     base_pipeline = None if own_base else load_pipeline(base_run, device)
-    sketch_set = load_sketch_set(sketches).in_model_frame(edit_pipeline.datamanager.dataparser_transform)
+    sketch_set = load_sketch_set(sketches).in_model_frame(edit_pipeline.datamanager.data_frame_transform)
     lpips, lpips_reason = _lpips_or_reason()
 
     views, rows = [], []

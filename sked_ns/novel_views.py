@@ -290,6 +290,28 @@ def file_to_model(transform: DataparserTransform, meta: dict, folder: Path, appl
     return DataparserTransform(transform=matrix[:3], scale=transform.scale / applied_scale)
 
 
+def data_frame_transform(dataparser_config, transform: DataparserTransform) -> DataparserTransform:
+    """The map from a sketch set's data frame (the frame of the data's transforms.json, where users copy camera
+    entries from) to the model frame. nerfstudio-data folds the file's applied_transform / applied_scale into
+    the run's transform (which so starts from the original COLMAP frame): undo them; other dataparsers' run
+    transform starts from the file's frame already."""
+    from nerfstudio.data.dataparsers.nerfstudio_dataparser import NerfstudioDataParserConfig
+
+    data = getattr(dataparser_config, "data", None)
+    if not isinstance(dataparser_config, NerfstudioDataParserConfig) or data is None:
+        return transform
+    data = Path(data)
+    path = data if data.suffix == ".json" else data / "transforms.json"
+    if not path.is_file():
+        return transform
+    try:
+        meta = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, ValueError) as error:
+        raise SkedUserError(f"{path}: not readable as JSON ({error}).") from error
+    # nerfstudio looks for COLMAP's folder under the data path itself (never under a .json file).
+    return file_to_model(transform, meta, data)
+
+
 def frame_camera(frame: FrameCamera, transform: DataparserTransform):
     """A nerfstudio `Cameras` (one camera, model frame) of a camera-file frame, lens model and distortion kept."""
     from nerfstudio.cameras.cameras import CAMERA_MODEL_TO_TYPE, Cameras

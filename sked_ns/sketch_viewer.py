@@ -44,9 +44,12 @@ def _load(run: Path, device: str):
         pipeline = load_pipeline(run, device)
     except (FileNotFoundError, ValueError) as error:
         raise SystemExit(f"sked-sketch: {error}") from error
-    transform = pipeline.datamanager.train_dataparser_outputs
-    return run, pipeline, DataparserTransform(transform.dataparser_transform.numpy().astype(np.float64),
-                                              float(transform.dataparser_scale))
+    from sked_ns.novel_views import data_frame_transform
+
+    outputs = pipeline.datamanager.train_dataparser_outputs
+    transform = DataparserTransform(outputs.dataparser_transform.numpy().astype(np.float64), float(outputs.dataparser_scale))
+    # Saved sets are in the data's transforms.json frame, the frame sets copied from the photos' entries are in.
+    return run, pipeline, data_frame_transform(pipeline.datamanager.config.dataparser, transform)
 
 
 def renderer(pipeline, lock: Optional[threading.Lock] = None, max_width: Optional[int] = None):

@@ -175,3 +175,37 @@ def test_unreadable_camera_files_name_the_file_frame_and_field(tmp_path, meta, m
 def test_a_folder_without_a_camera_file_says_what_it_looked_for(tmp_path):
     with pytest.raises(SkedUserError, match=r"no camera file here \(looked for transforms.json and transforms_test.json\)"):
         views_of(tmp_path)
+
+
+def test_a_sketch_set_copied_from_an_ns_process_data_transforms_json_lands_on_its_photos(tmp_path):
+    """Sketch views whose poses are copied from transforms.json ("frame": "data") sit where the dataparser puts
+    those photos, although the run's transform starts from the COLMAP frame before `applied_transform`."""
+    from nerfstudio.data.dataparsers.nerfstudio_dataparser import NerfstudioDataParserConfig
+
+    from sked_ns.sketches import SketchSet, SketchView
+
+    applied = [[0.0, 1.0, 0.0, 0.1], [1.0, 0.0, 0.0, -0.2], [0.0, 0.0, -1.0, 0.3]]
+    folder = write_nerfstudio(tmp_path / "data", per_frame=False, extra={"applied_transform": applied, "applied_scale": 2.0})
+    config = NerfstudioDataParserConfig(data=folder, eval_mode="all", downscale_factor=1)
+    outputs = config.setup().get_dataparser_outputs("train")
+    run_transform = DataparserTransform(outputs.dataparser_transform.numpy().astype(np.float64),
+                                        float(outputs.dataparser_scale))
+    mask = np.zeros((HEIGHT, WIDTH), dtype=bool)
+    mask[10:20, 10:20] = True
+    views = [SketchView(mask=mask, camera_to_world=POSES[i][:3].copy(), fl_x=FOCAL, fl_y=FOCAL, cx=WIDTH / 2,
+                        cy=HEIGHT / 2) for i in (0, 1)]
+    model_frame = SketchSet(views=views, frame="data").in_model_frame(novel_views.data_frame_transform(config, run_transform))
+    for view, index in zip(model_frame.views, (0, 1)):  # frames are named in order, so nerfstudio keeps it
+        np.testing.assert_allclose(view.camera_to_world, outputs.cameras.camera_to_worlds[index].numpy(), atol=1e-5)
+    # The edit's datamanager hands the model this frame for its sketch set.
+    from sked_ns.datamanager import SKETCH_FRAME, SkedDataManagerConfig
+
+    datamanager = SkedDataManagerConfig(dataparser=config).setup(device="cpu")
+    handed = datamanager.train_dataset.metadata[SKETCH_FRAME]
+    np.testing.assert_allclose(SketchSet(views=views, frame="data").in_model_frame(handed).views[1].camera_to_world,
+                               outputs.cameras.camera_to_worlds[1].numpy(), atol=1e-5)
+    # Without applied_transform in the file, the data frame is the run's own.
+    plain = write_nerfstudio(tmp_path / "plain", per_frame=False)
+    same = novel_views.data_frame_transform(NerfstudioDataParserConfig(data=plain), run_transform)
+    np.testing.assert_allclose(same.transform, run_transform.transform)
+    assert same.scale == pytest.approx(run_transform.scale)
