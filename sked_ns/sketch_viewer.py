@@ -44,7 +44,7 @@ def _load(run: Path, device: str):
         pipeline = load_pipeline(run, device)
     except (FileNotFoundError, ValueError) as error:
         raise SystemExit(f"sked-sketch: {error}") from error
-    from sked_ns.novel_views import data_frame_transform
+    from sked_ns.data_frame import data_frame_transform
 
     outputs = pipeline.datamanager.train_dataparser_outputs
     transform = DataparserTransform(outputs.dataparser_transform.numpy().astype(np.float64), float(outputs.dataparser_scale))
