@@ -81,6 +81,17 @@ class SkedOptions:
     """The base's camera optimisation (copied from it): its learnt pose corrections are applied to photo rays."""
     ablation: Literal["none", "no-preserve", "no-silhouette", "text-only"] = "none"
     """The paper's ablations: drop L_pres, drop L_sil, or both (text only: the sketches only aim the views)."""
+    # Gaussian-splat bases only (splat_model.py); here so `ns-train sked` can parse them for any base.
+    keep_threshold: float = 0.99
+    """Splats: base Gaussians whose centre has a preservation weight above this are kept exactly (never optimised,
+    densified, pruned or reset); the others are editable, held to the base by L_pres."""
+    num_seeds: int = 1000
+    """Splats: new Gaussians seeded inside the sketches' visual hull for new content (none when carving)."""
+    seed_opacity: float = 0.005
+    """Splats: opacity of the seeds at the start: nearly transparent, but above the rasterizer's 1/255 cut-off, under
+    which a Gaussian is skipped and gets no gradient."""
+    seed_size: float = 0.5
+    """Splats: seed scale (standard deviation) relative to their mean spacing."""
 
     @property
     def effective_lambda_pres(self) -> float:

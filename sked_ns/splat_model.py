@@ -60,16 +60,7 @@ class SkedSplatModelConfig(SplatfactoModelConfig, SkedOptions):
     the edit's (base_scene.EDIT_OWNED_FIELDS)."""
 
     _target: Type = field(default_factory=lambda: SkedSplatModel)
-    keep_threshold: float = 0.99
-    """Base Gaussians whose centre has a preservation weight above this are kept exactly (never optimised,
-    densified, pruned or reset); the others are editable, held to the base by L_pres."""
-    num_seeds: int = 1000
-    """New Gaussians seeded inside the sketches' visual hull for new content (none when carving)."""
-    seed_opacity: float = 0.005
-    """Opacity of the seeds at the start: nearly transparent, but above the rasterizer's 1/255 cut-off, under
-    which a Gaussian is skipped and gets no gradient."""
-    seed_size: float = 0.5
-    """Seed scale (standard deviation) relative to their mean spacing."""
+    # keep_threshold, num_seeds, seed_opacity, seed_size: SkedOptions (typeable on `ns-train sked` for any base).
     reset_alpha_every: int = 0
     """splatfacto's opacity reset every this many refinements; 0 = never (an edit starts from a trained base:
     a reset would fade every editable base Gaussian at once)."""

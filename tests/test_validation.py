@@ -34,7 +34,8 @@ def test_a_negative_or_non_finite_weight_is_refused_by_its_flag(name, value):
     ("samples_per_ray_scale", float("nan")), ("occupancy_threshold", -1.0), ("photo_threshold", 1.5),
     ("photo_threshold", -0.1), ("guidance_resolution", 0), ("guidance_resolution", -64),
     ("silhouette_resolution", 0), ("silhouette_resolution", -1), ("silhouette_resolution", 12.5),
-    ("edit_box_warmup", -1),
+    ("edit_box_warmup", -1), ("keep_threshold", 0.0), ("keep_threshold", 1.5), ("num_seeds", -1), ("num_seeds", 10.5),
+    ("seed_opacity", 0.0), ("seed_opacity", 1.0), ("seed_size", 0.0), ("seed_size", float("inf")),
 ])
 def test_each_field_out_of_its_range_is_refused_by_its_flag(name, value):
     with pytest.raises(SkedOptionError, match=f"--pipeline.model.{name.replace('_', '-')} "):
@@ -112,3 +113,23 @@ def test_a_sketch_under_a_pixel_at_the_silhouette_resolution_is_refused(rng):
         check_sketch_pixels(sketches, 1)
     with pytest.warns(SkedOptionWarning, match=r"masks/4px.png \(4 px\)"):
         check_sketch_pixels(sketches, 128)
+
+
+def test_splat_settings_are_typeable_for_any_base_and_reach_the_splat_model():
+    """`ns-train sked` parses the nerfacto-shaped preset: the splat settings must be there to be typed, and the
+    splat config built for a splatfacto base must keep what was typed."""
+    from nerfstudio.models.splatfacto import SplatfactoModelConfig
+
+    from sked_ns.splat_model import SkedSplatModelConfig
+    from sked_ns.trainer import edit_model_config
+
+    typed = SkedNerfactoModelConfig(keep_threshold=0.95, num_seeds=250, seed_opacity=0.02, seed_size=0.8)
+    splat = edit_model_config(typed, SplatfactoModelConfig())
+    assert isinstance(splat, SkedSplatModelConfig)
+    assert (splat.keep_threshold, splat.num_seeds, splat.seed_opacity, splat.seed_size) == (0.95, 250, 0.02, 0.8)
+
+
+@pytest.mark.parametrize("name, value", [("keep_threshold", 0.3), ("num_seeds", 500_000)])
+def test_splat_settings_that_edit_too_much_are_warned(name, value):
+    with pytest.warns(SkedOptionWarning, match=f"--pipeline.model.{name.replace('_', '-')} "):
+        warn_unusual_options(SkedNerfactoModelConfig(**{name: value}))
