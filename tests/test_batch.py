@@ -65,12 +65,12 @@ def status_rows(output: str) -> dict:
     return rows
 
 
-def wait_for(predicate, timeout: float, what: str, logs=()) -> None:
+def wait_for(predicate, timeout: float, what: str, logs=(), poll: float = 1.0) -> None:
     deadline = time.time() + timeout
     while time.time() < deadline:
         if predicate():
             return
-        time.sleep(1)
+        time.sleep(poll)
     tails = "\n".join(f"--- {log}\n{Path(log).read_text()[-2000:]}" for log in logs if Path(log).exists())
     pytest.fail(f"timed out after {timeout} s waiting for {what}\n{tails}")
 
@@ -317,7 +317,7 @@ def slurm(tmp_path_factory):
 def test_slurm_array_runs_the_plan_and_resubmitting_resumes_a_cancelled_edit(scene, slurm, tmp_path):
     path = write_plan(tmp_path, scene, [
         {"name": "short", "seed": 0, "flags": "--max-num-iterations 3 --steps-per-save 2"},
-        {"name": "long", "seed": 0, "flags": "--max-num-iterations 12 --steps-per-save 3"},
+        {"name": "long", "seed": 0, "flags": "--max-num-iterations 40 --steps-per-save 3"},  # long enough to cancel
     ])
     plan = load_plan(path)
     short, long = plan.job("short-s0"), plan.job("long-s0")
@@ -327,10 +327,13 @@ def test_slurm_array_runs_the_plan_and_resubmitting_resumes_a_cancelled_edit(sce
     array = re.search(r"submitted Slurm job array (\d+) \(2 task", submitted.stdout).group(1)
     assert (plan.output / "slurm").glob("submit-*.sbatch")
     checkpoints = long.run_dir / "nerfstudio_models"
-    wait_for(lambda: list(checkpoints.glob("step-*.ckpt")) or state.read_marker(long, "failed"), 600,
-             "the long edit's first checkpoint", [long.log])
+    wait_for(lambda: state.read_marker(long, "running") or state.read_marker(long, "failed"), 600,
+             "the long edit to start", [long.log])
     running = status_rows(sked_batch("status", path, env=env).stdout)
     assert running["long-s0"][0] == "running", running
+    # Cancel as soon as a checkpoint exists (nothing slow in between: a tiny edit's steps are fast on an idle machine).
+    wait_for(lambda: list(checkpoints.glob("step-*.ckpt")) or state.read_marker(long, "failed"), 600,
+             "the long edit's first checkpoint", [long.log], poll=0.1)
     cancelled = subprocess.run(["scancel", f"{array}_1"], env=env, capture_output=True, text=True)
     assert cancelled.returncode == 0, cancelled.stderr
     wait_for(lambda: not subprocess.run(["squeue", "-h", "-j", array], env=env, capture_output=True, text=True).stdout.strip(),
@@ -339,7 +342,7 @@ def test_slurm_array_runs_the_plan_and_resubmitting_resumes_a_cancelled_edit(sce
     assert rows["short-s0"] == ("done", "3/3"), rows
     assert rows["long-s0"][0] == "interrupted", rows
     saved = max(int(p.stem.split("-")[1]) for p in checkpoints.glob("step-*.ckpt"))
-    assert 0 < saved < 11
+    assert 0 < saved < 39
 
     again = sked_batch(path, "--slurm", "--gpus", "0", env=env)  # only the interrupted edit goes again
     assert again.returncode == 0, again.stdout + again.stderr
@@ -348,9 +351,9 @@ def test_slurm_array_runs_the_plan_and_resubmitting_resumes_a_cancelled_edit(sce
     wait_for(lambda: not subprocess.run(["squeue", "-h"], env=env, capture_output=True, text=True).stdout.strip(), 600,
              "the resumed edit and the report job after it", [long.log])
     rows = status_rows(sked_batch("status", path, env=env).stdout)
-    assert rows == {"short-s0": ("done", "3/3"), "long-s0": ("done", "12/12")}, rows
-    assert (checkpoints / "step-000000011.ckpt").is_file(), "the resumed edit reached the same total"
+    assert rows == {"short-s0": ("done", "3/3"), "long-s0": ("done", "40/40")}, rows
+    assert (checkpoints / "step-000000039.ckpt").is_file(), "the resumed edit reached the same total"
     log = " ".join(long.log.read_text().split())  # rich wraps long lines
-    assert f"Resuming the SKED edit {long.run_dir} from step-{saved:09d}.ckpt to 12 iterations" in log
+    assert f"Resuming the SKED edit {long.run_dir} from step-{saved:09d}.ckpt to 40 iterations" in log
     table = list(csv.DictReader((plan.output / "results.csv").open()))  # written by the report job
-    assert [(r["job"], r["status"], r["steps"]) for r in table] == [("short-s0", "done", "3"), ("long-s0", "done", "12")]
+    assert [(r["job"], r["status"], r["steps"]) for r in table] == [("short-s0", "done", "3"), ("long-s0", "done", "40")]
