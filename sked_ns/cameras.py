@@ -128,3 +128,15 @@ def cameras_of(poses: torch.Tensor, fx, fy, cx, cy, width: int, height: int) -> 
         height=torch.full((poses.shape[0], 1), height, dtype=torch.long),
         camera_type=CameraType.PERSPECTIVE,
     )
+
+
+def viewmat(camera_to_world: Tensor) -> Tensor:
+    """nerfstudio's OpenGL camera-to-world (C, 3, 4) -> gsplat's world-to-camera (C, 4, 4), as splatfacto's
+    `get_viewmat` (uncompiled): the y and z axes flip."""
+    rotation = camera_to_world[:, :3, :3] * camera_to_world.new_tensor([[[1, -1, -1]]])
+    translation = camera_to_world[:, :3, 3:4]
+    inverse = torch.zeros(camera_to_world.shape[0], 4, 4, dtype=camera_to_world.dtype, device=camera_to_world.device)
+    inverse[:, 3, 3] = 1.0
+    inverse[:, :3, :3] = rotation.transpose(1, 2)
+    inverse[:, :3, 3:4] = -torch.bmm(rotation.transpose(1, 2), translation)
+    return inverse

@@ -36,6 +36,7 @@ from nerfstudio.utils.colors import get_color
 from torch import Tensor
 from torch.nn import Parameter
 
+from sked_ns.cameras import viewmat
 from sked_ns.base_scene import read_model_state
 from sked_ns.edit import SkedEdit
 from sked_ns.errors import SkedUserError
@@ -123,17 +124,6 @@ def base_gaussians(state: Dict[str, Tensor], checkpoint: Path, sh_degree: int) -
         raise SkedUserError(f"{checkpoint}: the base's Gaussians do not fit its config (SH degree {sh_degree}): "
                             f"{', '.join(wrong)}.")
     return gaussians
-
-
-def viewmat(camera_to_world: Tensor) -> Tensor:
-    """nerfstudio's OpenGL camera-to-world (C, 3, 4) -> gsplat's world-to-camera (C, 4, 4), as splatfacto's."""
-    rotation = camera_to_world[:, :3, :3] * camera_to_world.new_tensor([[[1, -1, -1]]])
-    translation = camera_to_world[:, :3, 3:4]
-    inverse = torch.zeros(camera_to_world.shape[0], 4, 4, dtype=camera_to_world.dtype, device=camera_to_world.device)
-    inverse[:, 3, 3] = 1.0
-    inverse[:, :3, :3] = rotation.transpose(1, 2)
-    inverse[:, :3, 3:4] = -torch.bmm(rotation.transpose(1, 2), translation)
-    return inverse
 
 
 def gaussian_colours(gaussians: Dict[str, Tensor], camera_centre: Tensor, sh_degree: int) -> Tensor:
@@ -310,17 +300,18 @@ class SkedSplatModel(SkedEdit, SplatfactoModel):
         return {name: self._scene(name) for name in GAUSSIAN_PARAMS}
 
     # ---- preservation weights per Gaussian ----------------------------------------------------
-    def _kept_weight(self) -> Tensor:
-        """w of the kept Gaussians (fixed centres): once per beta."""
-        key = (self.config.beta, len(self.kept["means"]), self.kept["means"].device)
-        if getattr(self, "_kept_weight_key", None) != key:
-            self._kept_weight_cache = self.preservation_weight(self.kept["means"])
-            self._kept_weight_key = key
-        return self._kept_weight_cache
+    def _fixed_weight(self, name: str, means: Tensor) -> Tensor:
+        """w of Gaussians that never move (the kept ones, the frozen base): once per beta, not every render."""
+        key = (self.config.beta, len(means), means.device)
+        cache = self.__dict__.setdefault("_fixed_weights", {})
+        if name not in cache or cache[name][0] != key:
+            cache[name] = (key, self.preservation_weight(means))
+        return cache[name][1]
 
     def _scene_weight(self) -> Tensor:
         """(N, 1) w at every Gaussian's centre, kept first (editable ones where they are now)."""
-        return torch.cat([self._kept_weight(), self.preservation_weight(self.gauss_params["means"])])
+        return torch.cat([self._fixed_weight("kept", self.kept["means"]),
+                          self.preservation_weight(self.gauss_params["means"])])
 
     # ---- rendering ------------------------------------------------------------------------
     def _rasterize(self, gaussians: Dict[str, Tensor], camera: Cameras, background: Tensor,
@@ -377,7 +368,7 @@ class SkedSplatModel(SkedEdit, SplatfactoModel):
         edit is, the same channels in the same order: an unchanged edit renders bit-identically)."""
         background = self._get_background_color() if background is None else background
         base = self.frozen_gaussians
-        outputs = self._rasterize(base, camera, background, self.preservation_weight(base["means"]), depth=True)[0]
+        outputs = self._rasterize(base, camera, background, self._fixed_weight("base", base["means"]), depth=True)[0]
         outputs["preservation_weight"] = (outputs.pop("extra") + (1 - outputs["accumulation"])).clamp(0, 1)
         return outputs
 

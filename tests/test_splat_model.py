@@ -313,3 +313,14 @@ def test_photo_anchor_removes_a_floater_in_front_of_a_training_photo(splat_scene
             continue
         losses["photo_loss"].backward()
         assert float(model.gauss_params["opacities"].grad[-1]) > 0  # descent fades the floater
+
+
+def test_viewmat_is_splatfactos_camera_convention():
+    """The one world-to-camera map the splat edit and the splat-base fitter use equals splatfacto's own."""
+    from nerfstudio.models.splatfacto import get_viewmat
+
+    from sked_ns.cameras import viewmat
+
+    camera_to_world = torch.randn(4, 3, 4, generator=torch.Generator().manual_seed(0))
+    reference = getattr(get_viewmat, "__wrapped__", get_viewmat)  # splatfacto compiles it
+    torch.testing.assert_close(viewmat(camera_to_world), reference(camera_to_world))

@@ -25,6 +25,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from sked_ns.cameras import viewmat
+
 
 @dataclass
 class SplatFit:
@@ -79,17 +81,6 @@ def splatfacto_config(data: Path, output_dir: Path, fit: SplatFit = SplatFit(), 
     for schedule in (config.optimizers["means"]["scheduler"],):
         schedule.max_steps = fit.steps  # splatfacto decays the means' lr over its whole run
     return config
-
-
-def viewmat(camera_to_world: Tensor) -> Tensor:
-    """splatfacto's `get_viewmat` (nerfstudio's OpenGL camera-to-world -> gsplat's world-to-camera), uncompiled."""
-    rotation = camera_to_world[:, :3, :3] * camera_to_world.new_tensor([[[1, -1, -1]]])
-    translation = camera_to_world[:, :3, 3:4]
-    inverse = torch.zeros(camera_to_world.shape[0], 4, 4, dtype=camera_to_world.dtype, device=camera_to_world.device)
-    inverse[:, 3, 3] = 1.0
-    inverse[:, :3, :3] = rotation.transpose(1, 2)
-    inverse[:, :3, 3:4] = -torch.bmm(rotation.transpose(1, 2), translation)
-    return inverse
 
 
 def render_for_training(model, camera, rasterize: Callable) -> Dict[str, Tensor]:
