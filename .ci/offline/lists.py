@@ -1,6 +1,6 @@
 """Which distributions an offline GPU node needs besides its own torch/torchvision.
 
-    python .ci/offline/lists.py imports runtime   # what ns-train sked, sked-eval, sked-sketch, ns-render import
+    python .ci/offline/lists.py imports runtime   # what ns-train sked (NeRF and splat bases), sked-eval, sked-sketch, sked-batch, ns-render import
     python .ci/offline/lists.py imports export    # the same plus ns-export
     python .ci/offline/lists.py lock              # rewrite runtime.txt / export.txt, pinned to this environment
 
@@ -25,6 +25,8 @@ RUNTIME_MODULES = [
     "nerfstudio.scripts.viewer.run_viewer", "nerfstudio.scripts.render", "nerfstudio.utils.writer",
     "torch.utils.tensorboard", "sked_ns.config", "sked_ns.ngp_model", "sked_ns.guidance.stable_diffusion",
     "sked_ns.evaluate", "sked_ns.clip_score", "sked_ns.sketch_viewer", "sked_ns.demo.run", "sked_ns.authors_import",
+    "sked_ns.splat_model", "sked_ns.splat_render", "sked_ns.demo.splat_base", "sked_ns.batch.cli", "sked_ns.batch.report",
+    "yaml",
     "diffusers.models.unets.unet_2d_condition", "diffusers.models.autoencoders.autoencoder_kl",
     "diffusers.schedulers.scheduling_ddpm", "transformers.models.clip.modeling_clip",
     "transformers.models.clip.tokenization_clip", "torchmetrics.image.lpip",
