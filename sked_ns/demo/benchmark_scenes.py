@@ -8,6 +8,10 @@ textures, sphere-traced like the demo), so every figure has exact ground truth:
   flower (green stem, red blossom) standing in the vase: it touches an existing surface.
 - `crate`: an orange plank crate, a green can and a tiled table; the edit is a purple handle on
   the crate's side (a ring touching the crate), sketched from three close views.
+- `marker`: a checkered book, a striped cup and a wood-grain table; the edit is a yellow marker lying
+  diagonally on the book, sketched from two low views 90 degrees apart (issue 23): each sketch shows
+  a thin bar, and the region both allow (their visual hull) is a slab over most of the book, 8.6x the
+  marker's volume and 3.4x its outline from above (`sked_ns.hull_check`).
 
 `write_benchmark(name, folder)` writes `data/` (a nerfstudio dataset of the base: train it with
 plain `ns-train nerfacto`), `target/` (the edited scene at the dataset's evaluation cameras, with
@@ -111,6 +115,7 @@ WOOD = two_tone(lambda p: torch.sin(p[..., 0] * 23.0 + 1.5 * torch.sin(p[..., 1]
 TILES = two_tone(lambda p: torch.sin(p[..., 0] * 12.0) * torch.sin(p[..., 1] * 12.0), (0.85, 0.85, 0.82),
                  (0.45, 0.47, 0.5))
 TABLE_TOP = 0.0
+BOOK_TOP = 0.12
 
 
 @dataclass(frozen=True)
@@ -177,6 +182,25 @@ SCENES: Dict[str, BenchmarkScene] = {
             edit_parts=(Part(torus_xz((0.39, 0.0, 0.22), 0.13, 0.045), solid((0.55, 0.2, 0.7))),),
             sketch_views=((-20.0, 15.0), (30.0, 25.0), (80.0, 40.0)),
             description="a handle on the crate's side (touches the crate), three views over 100 deg",
+        ),
+        BenchmarkScene(
+            "marker",
+            base_parts=(
+                Part(box((0.0, 0.0, TABLE_TOP - 0.05), (0.9, 0.9, 0.05)), WOOD),
+                Part(box((-0.05, 0.0, BOOK_TOP / 2), (0.3, 0.22, BOOK_TOP / 2)),
+                     two_tone(lambda p: torch.sin(p[..., 0] * 20.0) * torch.sin(p[..., 1] * 20.0), (0.15, 0.45, 0.4),
+                              (0.9, 0.88, 0.8))),
+                Part(cylinder((0.45, 0.4, 0.13), 0.09, 0.13),
+                     two_tone(lambda p: torch.sin(p[..., 2] * 40.0), (0.8, 0.25, 0.2), (0.95, 0.95, 0.92))),
+            ),
+            edit_parts=(
+                Part(capsule((-0.27, -0.15, BOOK_TOP + 0.045), (0.13, 0.14, BOOK_TOP + 0.045), 0.045),
+                     solid((0.95, 0.78, 0.12))),
+                Part(capsule((0.13, 0.14, BOOK_TOP + 0.045), (0.2, 0.19, BOOK_TOP + 0.045), 0.047), solid((0.12, 0.12, 0.14))),
+            ),
+            sketch_views=((-10.0, 12.0), (80.0, 12.0)),
+            description="a marker lying diagonally on a book (touches it), two low views 90 deg apart: their visual "
+                        "hull is a slab over most of the book, 8.6x the marker's volume",
         ),
     )
 }
