@@ -235,10 +235,12 @@ def _png(path: Path, rgb: Tensor) -> None:
 
 
 def scene_named(name: str):
-    """A known edit: a held-out scene here, or one of the demo sphere's (demo_scene.SCENES, tuned on)."""
+    """A known edit: a held-out scene here or in unbounded_scenes, or one of the demo sphere's (demo_scene.SCENES,
+    tuned on)."""
     from sked_ns.demo import scene as demo_scene
+    from sked_ns.demo import unbounded_scenes
 
-    scenes = {**demo_scene.SCENES, **SCENES}
+    scenes = {**demo_scene.SCENES, **SCENES, **unbounded_scenes.SCENES}
     if name not in scenes:
         raise ValueError(f"no benchmark scene {name!r}; choose one of {sorted(scenes)}.")
     return scenes[name]
@@ -246,6 +248,10 @@ def scene_named(name: str):
 
 def write_benchmark(name: str, folder: Path, count: int = 48, size: int = IMAGE_SIZE) -> Dict[str, Path]:
     """data/ (the base's photos), target/ (the edit's ground truth at the eval cameras) and sketches/."""
+    from sked_ns.demo import unbounded_scenes
+
+    if name in unbounded_scenes.SCENES:  # their own capture: low cameras among the objects
+        return unbounded_scenes.write_benchmark(name, folder, count, size)
     scene = scene_named(name)
     folder = Path(folder)
     focal = FOCAL * size / IMAGE_SIZE
