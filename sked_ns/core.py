@@ -25,7 +25,7 @@ from torch import Tensor
 from sked_ns.base_scene import read_model_state, uses_tcnn
 from sked_ns.colour_residual import ColourResidual
 from sked_ns.edit import SkedEdit
-from sked_ns.losses import occupancy_log_probabilities, preservation_loss, sparsity_loss
+from sked_ns.losses import new_mass_loss, occupancy_log_probabilities, preservation_loss, sparsity_loss
 from sked_ns.options import (  # noqa: F401  (re-exported: their home was this module)
     SkedOptions,
     SkedSettingsWarning,
@@ -226,6 +226,9 @@ class SkedMixin(SkedEdit):
             config.lambda_colour, config.preservation_target,
         )
         losses["sparsity_loss"] = config.lambda_sp * sparsity_loss(view["accumulation"])
+        if config.lambda_new_mass > 0 and not is_carving(config):
+            losses["new_mass_loss"] = config.lambda_new_mass * new_mass_loss(
+                density_edit, base_outputs[FieldHeadNames.DENSITY], weight, config.preservation_delta)
         if is_carving(config):
             # No prompt: empty the sketched region (occupancy -> 0 where w is small).
             _, log_empty = occupancy_log_probabilities(density_edit, config.preservation_delta)

@@ -105,3 +105,27 @@ def sparsity_loss(accumulation: Tensor) -> Tensor:
     """
     alpha = accumulation.float().clamp(ALPHA_EPS, 1.0 - ALPHA_EPS)
     return -(alpha * torch.log(alpha) + (1.0 - alpha) * torch.log1p(-alpha)).mean() / math.log(2.0)
+
+
+def new_mass_loss(
+    density_edit: Float[Tensor, "*bs num_samples 1"],
+    density_base: Float[Tensor, "*bs num_samples 1"],
+    preservation_weight: Float[Tensor, "*bs num_samples 1"],
+    delta: float = 0.07,
+) -> Tensor:
+    """L_new = sum_i (1 - w_i) relu(alpha_e,i - alpha_o,i) / sum_i (1 - w_i): the opacity the edit adds over the
+    base, per unit of the region it may change (ours, issue 23).
+
+    L_sil asks each sketch ray for one opaque point but pulls every point of the ray's stretch of the visual
+    hull alike, so it fills the whole hull; nothing then removes mass no loss asks for. This does: once the
+    guidance has made a sketch ray opaque at its part, L_sil's pull on the rest of that ray vanishes and the
+    bulk fades. alpha at the fixed delta saturates, so solid parts feel it little and haze the most. A mean
+    over the editable samples: its scale does not depend on how much of a view the region covers.
+    """
+    density_edit = density_edit.float()
+    positive = torch.where(density_edit >= 0, density_edit, torch.zeros_like(density_edit))  # gradient at 0 kept
+    alpha_edit = -torch.expm1(-positive * delta)
+    alpha_base = -torch.expm1(-density_base.detach().float().clamp_min(0) * delta)
+    editable = (1.0 - preservation_weight.float()).clamp(0.0, 1.0)
+    added = torch.relu(alpha_edit - alpha_base)
+    return (editable * added).sum() / editable.sum().clamp_min(1e-6)  # no editable sample: 0, not NaN

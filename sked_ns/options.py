@@ -56,6 +56,10 @@ class SkedOptions:
     right for a base with an empty background)."""
     lambda_sp: float = 5e-4
     """Weight of the sparsity (accumulation entropy) loss."""
+    lambda_new_mass: float = 0.0
+    """Weight of L_new (losses.new_mass_loss): the opacity the edit adds over the base near the sketches, so new mass
+    stays only where the guidance or L_sil keeps asking for it and a two-view visual hull is carved, not filled.
+    0: the paper's losses."""
     lambda_carve: float = 5.0
     """Weight of the carving loss (empty the sketched region) when there is no prompt."""
     occupancy_threshold: float = 5.0
