@@ -281,7 +281,16 @@ VARIANTS = {"default": [],
             "sketch-normalised-sil (L_sil per sketch pixel)": ["--pipeline.model.silhouette-normalisation", "sketch"],
             # Adam moves a hash entry by about its lr a step: a thin part needs a high density, so many steps.
             "grid-lr-3x (hash grids' Adam lr 0.15, to 0.015)": ["--optimizers.hash-grids.optimizer.lr", "0.15",
-                                                                "--optimizers.hash-grids.scheduler.lr-final", "0.015"]}
+                                                                "--optimizers.hash-grids.scheduler.lr-final", "0.015"],
+            # Issue 23, what carves a two-view visual hull: the guidance's weight, L_sp, the warm-up's proposal boost,
+            # L_sil's weight, and L_new (the opacity the edit adds over the base) at three weights.
+            "guidance-3x (reference weight 90)": ["--pipeline.model.guidance.weight", "90"],
+            "sparsity-100x (lambda_sp 0.05)": ["--pipeline.model.lambda-sp", "0.05"],
+            "no-boost (no proposal density in the hull during warm-up)": ["--pipeline.model.edit-box-density", "0"],
+            "sil-0.3 (lambda_sil 0.3)": ["--pipeline.model.lambda-sil", "0.3"],
+            "new-mass-1 (L_new weight 1)": ["--pipeline.model.lambda-new-mass", "1"],
+            "new-mass-5 (L_new weight 5)": ["--pipeline.model.lambda-new-mass", "5"],
+            "new-mass-20 (L_new weight 20)": ["--pipeline.model.lambda-new-mass", "20"]}
 
 
 def _set(scene: str) -> str:
