@@ -8,6 +8,7 @@ only ever read.
 from __future__ import annotations
 
 import copy
+import re
 import warnings
 import zipfile
 from dataclasses import dataclass, fields
@@ -141,12 +142,18 @@ def _latest_checkpoint(models_dir: Path, step: Optional[int]) -> Path:
     raise SkedUserError(f"{models_dir}: every checkpoint here is broken (empty or truncated); nothing to load.")
 
 
-def resolve_base(load_dir: Path, step: Optional[int] = None) -> BaseScene:
-    """Accept `<run>`, `<run>/nerfstudio_models` or a `.ckpt` file; read and check config.yml."""
+def resolve_base(load_dir: Path, step: Optional[int] = None, flag: str = "--load-dir") -> BaseScene:
+    """Accept `<run>`, `<run>/nerfstudio_models` or a `.ckpt` file; read and check config.yml. `flag` names the
+    option the path came from in errors."""
     path = Path(load_dir).expanduser()
     if not path.exists():
-        raise SkedFileNotFoundError(f"--load-dir {path}: no such file or folder.")
+        raise SkedFileNotFoundError(f"{flag} {path}: no such file or folder.")
     if path.is_file():
+        if not re.fullmatch(r"step-\d+\.ckpt", path.name):
+            raise SkedUserError(f"{flag} {path}: not a nerfstudio checkpoint (step-NNNNNNNNN.ckpt in a run's "
+                                "nerfstudio_models folder); give the run folder or one of its checkpoints.")
+        if step is not None and checkpoint_step(path) != step:
+            raise SkedUserError(f"{flag} {path} and --load-step {step}: they name different checkpoints; give one.")
         models_dir, checkpoint = path.parent, path
     elif (path / "config.yml").exists():
         models_dir, checkpoint = path / "nerfstudio_models", None
@@ -156,7 +163,7 @@ def resolve_base(load_dir: Path, step: Optional[int] = None) -> BaseScene:
     config_path = run_dir / "config.yml"
     if not config_path.exists():
         raise SkedFileNotFoundError(
-            f"{config_path}: missing. --load-dir must be a nerfstudio run folder (with config.yml) or its "
+            f"{config_path}: missing. {flag} must be a nerfstudio run folder (with config.yml) or its "
             "nerfstudio_models folder; the base's config.yml says which model it is."
         )
     if checkpoint is None:

@@ -60,11 +60,18 @@ def resolve_edit(config: SkedTrainerConfig) -> None:
     model = config.pipeline.model
     if config.sketches is not None:
         model.sketches = config.sketches
-    if config.load_dir is None:
+    if config.load_dir is not None and config.load_checkpoint is not None:
+        raise SkedUserError(f"--load-dir {config.load_dir} and --load-checkpoint {config.load_checkpoint}: give one "
+                            "of them (a run folder, or one of its step-*.ckpt files).")
+    # nerfstudio users also name the scene by its checkpoint file: the base, or the edit to resume, from that step.
+    source, flag = (config.load_dir, "--load-dir") if config.load_checkpoint is None else (config.load_checkpoint,
+                                                                                          "--load-checkpoint")
+    if source is None:
         if model.base_checkpoint is None:
             raise SkedUserError("ns-train sked needs the scene to edit: --load-dir <base run>/nerfstudio_models.")
     else:
-        base = resolve_base(config.load_dir, config.load_step)
+        base = resolve_base(source, config.load_step, flag=flag)
+        config.load_checkpoint = None  # resume_edit sets load_dir/load_step to the checkpoint; a new edit loads none
         if base.family == "sked" and not config.progressive:
             resume_edit(config, base)
         else:

@@ -146,6 +146,32 @@ def test_resume_refuses_a_finished_edit_a_shorter_total_and_another_sketch_set(s
         resolve_edit(config)
 
 
+def test_load_checkpoint_names_the_base_or_the_edit_to_resume(scene, edited, tmp_path):
+    """`--load-checkpoint <run>/nerfstudio_models/step-N.ckpt`, as nerfstudio users type it, instead of --load-dir."""
+    base_checkpoint = resolve_base(scene["base"]).checkpoint
+    config = edit_config(scene["base"], scene["data"], scene["sketches"], tmp_path, iterations=2)
+    config.load_dir, config.load_checkpoint = None, base_checkpoint
+    resolve_edit(config)
+    # A new edit of that base: its weights from that file, fresh optimisers (nothing for nerfstudio to load).
+    assert config.pipeline.model.base_checkpoint == base_checkpoint
+    assert config.load_dir is None and config.load_checkpoint is None
+    saved = sorted((edited["run"] / "nerfstudio_models").glob("step-*.ckpt"))[-1]
+    config = resume_config(edited["run"], iterations=80)
+    config.load_dir, config.load_checkpoint = None, saved
+    resolve_edit(config)
+    # An edit's checkpoint resumes that edit from that step, with its saved settings.
+    assert (config.load_dir, config.load_step, config.load_checkpoint) == (saved.parent, ITERATIONS - 1, None)
+    assert config.pipeline.model.guidance_resolution == 24
+    config = edit_config(scene["base"], scene["data"], scene["sketches"], tmp_path, iterations=2)
+    config.load_checkpoint = base_checkpoint
+    with pytest.raises(SkedUserError, match=r"--load-dir .* and --load-checkpoint .*: give one of them"):
+        resolve_edit(config)
+    config = edit_config(scene["base"], scene["data"], scene["sketches"], tmp_path, iterations=2)
+    config.load_dir, config.load_checkpoint = None, scene["base"] / "config.yml"
+    with pytest.raises(SkedUserError, match=r"^--load-checkpoint .*config.yml: not a nerfstudio checkpoint"):
+        resolve_edit(config)
+
+
 def test_progressive_edit_uses_the_edit_as_base(scene, edited, tmp_path):
     config = edit_config(edited["run"], scene["data"], scene["sketches"], tmp_path, iterations=2)
     config.progressive = True
