@@ -16,7 +16,9 @@ def render_camera(model, camera, base: bool = False) -> Dict[str, torch.Tensor]:
     was_training = model.training
     model.eval()
     with torch.no_grad():
-        if not base:
+        if not base and _stock_splatfacto(model) and model.device.type != "cuda":
+            outputs = render_splatfacto(model, camera)
+        elif not base:
             outputs = model.get_outputs_for_camera(camera)
         elif _renders_whole_cameras(model):
             outputs = model.render_base(camera)  # a splat edit rasterizes its frozen base per camera, not per ray
@@ -40,6 +42,36 @@ def _renders_whole_cameras(model) -> bool:
     from nerfstudio.models.splatfacto import SplatfactoModel
 
     return isinstance(model, SplatfactoModel)
+
+
+def _stock_splatfacto(model) -> bool:
+    from sked_ns.splat_model import SkedSplatModel
+
+    return _renders_whole_cameras(model) and not isinstance(model, SkedSplatModel)
+
+
+def render_splatfacto(model, camera) -> Dict[str, torch.Tensor]:
+    """A plain splatfacto model's eval render off CUDA, with SKED's torch rasterizer: nerfstudio 1.1.5's
+    get_outputs moves the intrinsics to CUDA and calls gsplat's CUDA-only kernels. Same Gaussians, SH degree
+    (splatfacto's schedule at the model's step), background and clamping."""
+    from sked_ns.cameras import viewmat
+    from sked_ns.splat_render import rasterize
+
+    camera_to_world = camera.camera_to_worlds.reshape(-1, 3, 4)[:1].to(model.device, torch.float32)
+    intrinsics = camera.get_intrinsics_matrices().reshape(-1, 3, 3)[:1].to(model.device, torch.float32)
+    width, height = int(camera.width.reshape(-1)[0]), int(camera.height.reshape(-1)[0])
+    if model.config.sh_degree > 0:
+        colours = torch.cat((model.features_dc[:, None, :], model.features_rest), dim=1)
+        sh_degree = min(model.step // model.config.sh_degree_interval, model.config.sh_degree)
+    else:
+        colours, sh_degree = torch.sigmoid(model.features_dc), None
+    render, alpha, _ = rasterize(model.means, model.quats, torch.exp(model.scales),
+                                 torch.sigmoid(model.opacities).squeeze(-1), colours, viewmat(camera_to_world),
+                                 intrinsics, width, height, sh_degree=sh_degree,
+                                 rasterize_mode=model.config.rasterize_mode)
+    background = model._get_background_color().to(render)
+    rgb = torch.clamp(render[0, ..., :3] + (1 - alpha[0]) * background, 0.0, 1.0)
+    return {"rgb": rgb, "accumulation": alpha[0]}
 
 
 def render_at(model, view: SketchView, resolution: int) -> Dict[str, torch.Tensor]:
