@@ -96,6 +96,10 @@ class SkedOptions:
     which a Gaussian is skipped and gets no gradient."""
     seed_size: float = 0.5
     """Splats: seed scale (standard deviation) relative to their mean spacing."""
+    splat_learning_rates: Literal["edit", "splatfacto"] = "edit"
+    """Splats: the Gaussians' Adam rates. "edit": sized to the edit's length, so that a seed can turn opaque, take any
+    colour and change its size 4x within a third of the iterations (splat_model.edit_rates); "splatfacto":
+    splatfacto's own, sized for 30,000-step runs (a 500-step edit's seeds stay a faint grey haze)."""
 
     @property
     def effective_lambda_pres(self) -> float:

@@ -126,8 +126,8 @@ def start_edit(config: SkedTrainerConfig, base: BaseScene) -> None:
     """A new edit of `base`: the model shaped like it, starting at step 0 from its weights."""
     model = config.pipeline.model = edit_model_config(config.pipeline.model, base.model_config)
     model.base_checkpoint = base.checkpoint
-    if isinstance(model, SkedSplatModelConfig):  # the presets' optimisers are a NeRF's: Gaussians take splatfacto's
-        config.optimizers = splat_optimizers(config.max_num_iterations)
+    if isinstance(model, SkedSplatModelConfig):  # the presets' optimisers are a NeRF's: Gaussians take the splat edit's
+        config.optimizers = splat_optimizers(config.max_num_iterations, model)
     config.load_dir = None  # the base is not a run to resume: fresh optimisers, step 0
     config.load_step = None
     CONSOLE.print(f"Editing the {base.method} scene {base.run_dir} ({base.checkpoint.name})")
