@@ -7,8 +7,8 @@ import math
 import pytest
 import torch
 
-from sked_ns.losses import (ALPHA_EPS, PROBABILITY_EPS, REFERENCE_SKETCH_COVERAGE, preservation_loss, silhouette_loss,
-                            sparsity_loss)
+from sked_ns.losses import (ALPHA_EPS, PROBABILITY_EPS, REFERENCE_SKETCH_COVERAGE, new_mass_loss, preservation_loss,
+                            silhouette_loss, sparsity_loss)
 
 DELTA = 0.07
 
@@ -183,3 +183,39 @@ def test_a_wall_behind_the_sketch_does_not_fill_it():
     packed = SkedMixin.editable_accumulation(_FarIsKept(), positions.reshape(4, 3), weights.detach().reshape(4, 1),
                                              accumulation.detach(), ray_indices=torch.tensor([0, 0, 1, 1]))
     torch.testing.assert_close(packed, editable.detach())
+
+
+def test_new_mass_loss_by_hand():
+    # Sample 0: new mass (edit alpha 0.5 over an empty base), w = 0.25. Sample 1: the base's own mass kept (alpha 0.5
+    # in both): nothing added. Sample 2: the edit thinner than the base: nothing added. Sample 3: new mass, kept (w 1).
+    half = math.log(2) / DELTA
+    density_edit = torch.tensor([[half], [half], [0.0], [half]], requires_grad=True)
+    density_base = torch.tensor([[0.0], [half], [half], [0.0]])
+    weight = torch.tensor([[0.25], [0.0], [0.5], [1.0]])
+    loss = new_mass_loss(density_edit, density_base, weight, DELTA)
+    assert loss.item() == pytest.approx(0.75 * 0.5 / (0.75 + 1.0 + 0.5 + 0.0), rel=1e-6)
+    loss.backward()
+    # Only the added mass near the sketches is pushed down; the base's own mass and kept samples feel nothing.
+    assert density_edit.grad[0, 0] > 0 and (density_edit.grad[1:] == 0).all()
+
+
+def test_new_mass_loss_spares_solid_parts_more_than_haze():
+    density = torch.tensor([[2.0], [200.0]], requires_grad=True)  # alpha 0.13 (haze), 1.0 (a solid part)
+    new_mass_loss(density, torch.zeros(2, 1), torch.zeros(2, 1), DELTA).backward()
+    assert density.grad[0, 0] > 1e3 * density.grad[1, 0] > 0
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float16])
+@pytest.mark.parametrize("density_value", [0.0, 1e-6, 5.0, 1e6, math.inf, -1.0])
+@pytest.mark.parametrize("weight_value", [0.0, 0.5, 1.0])
+def test_new_mass_loss_finite_at_extremes(dtype, density_value, weight_value):
+    density_value = min(density_value, torch.finfo(dtype).max) if math.isfinite(density_value) else density_value
+    density_edit = torch.full((4, 6, 1), density_value, dtype=dtype, requires_grad=True)
+    density_base = torch.tensor([0.0, 6e4, 4.9, 5.1, 0.0, 1e3], dtype=dtype).reshape(1, 6, 1).expand(4, 6, 1)
+    loss = new_mass_loss(density_edit, density_base, torch.full((4, 6, 1), weight_value, dtype=dtype), DELTA)
+    loss.backward()
+    assert torch.isfinite(loss) and torch.isfinite(density_edit.grad).all()
+    assert 0.0 <= loss.item() <= 1.0
+    if weight_value == 1.0:  # every sample kept: nothing to penalise, and no 0/0
+        assert loss.item() == 0.0
+    assert new_mass_loss(torch.zeros(0, 1), torch.zeros(0, 1), torch.zeros(0, 1)).item() == 0.0
