@@ -25,6 +25,7 @@ from torch import Tensor
 from sked_ns.base_scene import read_model_state, uses_tcnn
 from sked_ns.colour_residual import ColourResidual
 from sked_ns.edit import SkedEdit
+from sked_ns.hull_carving import SketchRayOpacity
 from sked_ns.losses import new_mass_loss, occupancy_log_probabilities, preservation_loss, sparsity_loss
 from sked_ns.options import (  # noqa: F401  (re-exported: their home was this module)
     SkedOptions,
@@ -60,6 +61,7 @@ class SkedMixin(SkedEdit):
             self.field.embedding_appearance.requires_grad_(False)
         self.colour_residual = (ColourResidual(self.edit_box.min, self.edit_box.max)
                                 if self.config.colour_residual else None)
+        self.sketch_ray_opacity = SketchRayOpacity(self.sketch_set.views, self.config.silhouette_resolution)
 
     def _steer(self, ray_bundle: RayBundle, outputs: Dict[str, Tensor]) -> Dict[str, Tensor]:
         """Evaluation outputs as the viewer controls ask (steer_outputs), the base rendered along the same rays."""
@@ -226,9 +228,6 @@ class SkedMixin(SkedEdit):
             config.lambda_colour, config.preservation_target,
         )
         losses["sparsity_loss"] = config.lambda_sp * sparsity_loss(view["accumulation"])
-        if config.lambda_new_mass > 0 and not is_carving(config):
-            losses["new_mass_loss"] = config.lambda_new_mass * new_mass_loss(
-                density_edit, base_outputs[FieldHeadNames.DENSITY], weight, config.preservation_delta)
         if is_carving(config):
             # No prompt: empty the sketched region (occupancy -> 0 where w is small).
             _, log_empty = occupancy_log_probabilities(density_edit, config.preservation_delta)
@@ -249,6 +248,12 @@ class SkedMixin(SkedEdit):
                 sil_losses, sil_metrics = self.silhouette_losses(opacity, sketch_masks)
                 losses.update(sil_losses)
                 metrics.update(sil_metrics)
+            if config.lambda_new_mass > 0:
+                # New mass on sketch rays already opaque (or off the sketches) that the guidance does not hold fades.
+                gate = (self.sketch_ray_opacity.gate(samples.frustums.get_positions(), opacity, sketch_masks)
+                        if sketch is not None else None)
+                losses["new_mass_loss"] = config.lambda_new_mass * new_mass_loss(
+                    density_edit, base_outputs[FieldHeadNames.DENSITY], weight, config.preservation_delta, gate)
         rendered = [view] + ([sketch] if sketch is not None else [])
         photo = data.get("photo")
         if photo is not None and config.effective_lambda_photo > 0:

@@ -17,6 +17,7 @@ All maths runs in float32 whatever the input dtype, so fp16 renders stay finite.
 from __future__ import annotations
 
 import math
+from typing import Optional
 
 import torch
 from jaxtyping import Float
@@ -112,15 +113,18 @@ def new_mass_loss(
     density_base: Float[Tensor, "*bs num_samples 1"],
     preservation_weight: Float[Tensor, "*bs num_samples 1"],
     delta: float = 0.07,
+    gate: Optional[Float[Tensor, "*bs num_samples 1"]] = None,
 ) -> Tensor:
-    """L_new = sum_i (1 - w_i) relu(alpha_e,i - alpha_o,i) / sum_i (1 - w_i): the opacity the edit adds over the
-    base, per unit of the region it may change (ours, issue 23).
+    """L_new = sum_i (1 - w_i) g_i relu(alpha_e,i - alpha_o,i) / sum_i (1 - w_i): the opacity the edit adds over
+    the base, per unit of the region it may change (ours, issue 23).
 
     L_sil asks each sketch ray for one opaque point but pulls every point of the ray's stretch of the visual
     hull alike, so it fills the whole hull; nothing then removes mass no loss asks for. This does: once the
     guidance has made a sketch ray opaque at its part, L_sil's pull on the rest of that ray vanishes and the
     bulk fades. alpha at the fixed delta saturates, so solid parts feel it little and haze the most. A mean
-    over the editable samples: its scale does not depend on how much of a view the region covers.
+    over the editable samples: its scale does not depend on how much of a view the region covers. `gate` g
+    (default 1): how far the sketches already have what they ask for at each sample
+    (hull_carving.SketchRayOpacity), so L_new does not compete with L_sil for an empty sketch ray.
     """
     density_edit = density_edit.float()
     positive = torch.where(density_edit >= 0, density_edit, torch.zeros_like(density_edit))  # gradient at 0 kept
@@ -128,4 +132,6 @@ def new_mass_loss(
     alpha_base = -torch.expm1(-density_base.detach().float().clamp_min(0) * delta)
     editable = (1.0 - preservation_weight.float()).clamp(0.0, 1.0)
     added = torch.relu(alpha_edit - alpha_base)
+    if gate is not None:
+        added = added * gate.detach().float().clamp(0.0, 1.0)
     return (editable * added).sum() / editable.sum().clamp_min(1e-6)  # no editable sample: 0, not NaN

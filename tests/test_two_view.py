@@ -86,3 +86,31 @@ def test_l_new_alone_cannot_empty_the_sketch_rays():
         optimiser.step()
     assert float(accumulation.min()) > 0.5
 
+
+
+def test_sketch_ray_opacity_reads_the_pixel_each_point_projects_to():
+    from sked_ns.cameras import pixel_directions
+    from sked_ns.demo.benchmark_scenes import SCENES
+    from sked_ns.hull_carving import SketchRayOpacity
+    from sked_ns.sketches import sketch_view_at
+
+    views = SCENES["marker"].sketch_set(64).views
+    lookup = SketchRayOpacity(views, 24)
+    first, mask = sketch_view_at(views[0], 24)
+    masks = torch.cat([sketch_view_at(view, 24)[1].flatten() for view in views]).float()
+    opacity = torch.rand(lookup.num_pixels, generator=torch.Generator().manual_seed(0))
+    height, width = mask.shape
+    v, u = torch.meshgrid(torch.arange(height), torch.arange(width), indexing="ij")
+    pixels = torch.stack([u.flatten() + 0.5, v.flatten() + 0.5], dim=-1).float()
+    intrinsics = torch.tensor([float(first.fx), float(first.fy), float(first.cx), float(first.cy)])
+    pose = first.camera_to_worlds[0]
+    points = pose[:, 3] + 2.0 * pixel_directions(pixels, pose, intrinsics)  # depth 2 along each pixel's ray
+    single = SketchRayOpacity(views[:1], 24).gate(points, opacity[:height * width], masks[:height * width])[..., 0]
+    on = mask.flatten()
+    torch.testing.assert_close(single[on], opacity[:height * width][on])  # a sketch pixel: its ray's opacity
+    assert (single[~on] == 1).all()  # off the sketch no sketch asks for mass: fully gated in
+    both = lookup.gate(points, opacity, masks)[..., 0]
+    assert (both <= single + 1e-6).all() and both.shape == single.shape  # the smallest over the views
+    assert (lookup.gate(points, torch.ones_like(opacity), masks) == 1).all()
+    assert (lookup.gate(points, torch.zeros_like(opacity), masks)[..., 0][on] == 0).all()
+    assert lookup.gate(torch.full((3, 3), float("nan")), opacity, masks).isfinite().all()

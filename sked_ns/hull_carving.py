@@ -1,0 +1,63 @@
+"""Which new mass L_sil no longer needs: points whose sketch rays are already opaque (issue 23).
+
+L_sil asks each sketch ray for one opaque point and pulls every point of the ray's stretch of the visual
+hull alike, so it fills the whole hull. Once every sketch ray through a point is opaque, that point's new
+mass is no longer needed by any sketch: it stays only if the guidance asks for it. `SketchRayOpacity`
+looks up, for any 3D point, the editable opacity its ray in each sketch view reached at the latest L_sil
+render; the gate of L_new (losses.new_mass_loss) is the smallest over the views, with pixels outside a
+sketch counting as opaque (no sketch asks for new mass there at all). So L_new never competes with L_sil
+for a sketch ray that is still empty, and empties the bulk of those that are filled.
+"""
+
+from __future__ import annotations
+
+from typing import Sequence
+
+import torch
+from torch import Tensor, nn
+
+from sked_ns.cameras import MIN_DEPTH, projection_rows
+from sked_ns.sketches import SketchView
+
+
+class SketchRayOpacity(nn.Module):
+    """Per-point lookup into the sketch views' latest L_sil renders (their pixels concatenated, row-major, in the
+    datamanager's order: `sketch_view_at(view, resolution)` for each view)."""
+
+    def __init__(self, views: Sequence[SketchView], resolution: int) -> None:
+        super().__init__()
+        from sked_ns.sketches import sketch_view_at
+
+        cameras = [sketch_view_at(view, resolution)[0] for view in views]
+        widths = [int(camera.width) for camera in cameras]
+        heights = [int(camera.height) for camera in cameras]
+        starts = torch.tensor([0] + [w * h for w, h in zip(widths, heights)][:-1]).cumsum(0)
+        intrinsics = torch.tensor([[float(c.fx), float(c.fy), float(c.cx), float(c.cy)] for c in cameras],
+                                  dtype=torch.float64)
+        camera_to_worlds = torch.cat([camera.camera_to_worlds for camera in cameras]).double()
+        self.register_buffer("rows", projection_rows(camera_to_worlds, intrinsics).float(), persistent=False)
+        self.register_buffer("starts", starts[:, None], persistent=False)
+        self.register_buffer("sizes", torch.tensor([widths, heights], dtype=torch.float32)[..., None], persistent=False)
+        self.num_pixels = sum(w * h for w, h in zip(widths, heights))
+
+    @torch.no_grad()
+    def gate(self, points: Tensor, opacity: Tensor, masks: Tensor) -> Tensor:
+        """min over views of the opacity at the sketch pixel each point (..., 3) projects to, 1 where it projects
+        outside a view's sketch (or its image, or lies behind its camera). `opacity`, `masks`: the flat L_sil render
+        and masks. Returns (..., 1), in [0, 1]."""
+        flat = points.reshape(-1, 3).float()
+        opacity = opacity.detach().reshape(-1).float().clamp(0.0, 1.0)
+        masks = masks.reshape(-1) > 0.5
+        if opacity.numel() != self.num_pixels or masks.numel() != self.num_pixels:
+            raise ValueError(f"L_sil render has {opacity.numel()} pixels and {masks.numel()} mask pixels; the sketch "
+                             f"views hold {self.num_pixels}.")
+        projected = torch.einsum("cvk,mk->cvm", self.rows[..., :3], flat) + self.rows[..., 3:]
+        depth = projected[2]
+        in_front = depth > MIN_DEPTH
+        pixel = (projected[:2] / torch.where(in_front, depth, torch.ones_like(depth))).nan_to_num(-1.0).floor()
+        on_image = in_front & (pixel >= 0).all(dim=0) & (pixel < self.sizes).all(dim=0)
+        pixel = torch.minimum(pixel.clamp_min(0.0), self.sizes - 1)
+        index = (pixel[1] * self.sizes[0] + pixel[0]).long() + self.starts
+        on_sketch = on_image & masks[index]
+        per_view = torch.where(on_sketch, opacity[index], torch.ones_like(depth))
+        return per_view.amin(dim=0).reshape(*points.shape[:-1], 1)
