@@ -282,6 +282,10 @@ VARIANTS = {"default": [],
             # Adam moves a hash entry by about its lr a step: a thin part needs a high density, so many steps.
             "grid-lr-3x (hash grids' Adam lr 0.15, to 0.015)": ["--optimizers.hash-grids.optimizer.lr", "0.15",
                                                                 "--optimizers.hash-grids.scheduler.lr-final", "0.015"],
+            # Splat bases: splatfacto's Adam rates (sized for 30,000 steps) and 1,000 seeds at half their spacing.
+            "splatfacto-rates (splatfacto's Adam rates, 1,000 seeds at 0.5x spacing: the previous splat default)": [
+                "--pipeline.model.splat-learning-rates", "splatfacto", "--pipeline.model.num-seeds", "1000",
+                "--pipeline.model.seed-size", "0.5"],
             # Issue 23, what carves a two-view visual hull: the guidance's weight, L_sp, the warm-up's proposal boost,
             # L_sil's weight, and L_new (the opacity the edit adds over the base) at three weights.
             "guidance-3x (reference weight 90)": ["--pipeline.model.guidance.weight", "90"],

@@ -123,10 +123,12 @@ def test_splat_settings_are_typeable_for_any_base_and_reach_the_splat_model():
     from sked_ns.splat_model import SkedSplatModelConfig
     from sked_ns.trainer import edit_model_config
 
-    typed = SkedNerfactoModelConfig(keep_threshold=0.95, num_seeds=250, seed_opacity=0.02, seed_size=0.8)
+    typed = SkedNerfactoModelConfig(keep_threshold=0.95, num_seeds=600, seed_opacity=0.02, seed_size=0.8,
+                                    splat_learning_rates="splatfacto")
     splat = edit_model_config(typed, SplatfactoModelConfig())
     assert isinstance(splat, SkedSplatModelConfig)
-    assert (splat.keep_threshold, splat.num_seeds, splat.seed_opacity, splat.seed_size) == (0.95, 250, 0.02, 0.8)
+    assert (splat.keep_threshold, splat.num_seeds, splat.seed_opacity, splat.seed_size,
+            splat.splat_learning_rates) == (0.95, 600, 0.02, 0.8, "splatfacto")
 
 
 @pytest.mark.parametrize("name, value", [("keep_threshold", 0.3), ("num_seeds", 500_000)])
