@@ -292,6 +292,7 @@ VARIANTS = {"default": [],
             "sparsity-100x (lambda_sp 0.05)": ["--pipeline.model.lambda-sp", "0.05"],
             "no-boost (no proposal density in the hull during warm-up)": ["--pipeline.model.edit-box-density", "0"],
             "sil-0.3 (lambda_sil 0.3)": ["--pipeline.model.lambda-sil", "0.3"],
+            "new-mass-0.3 (L_new weight 0.3)": ["--pipeline.model.lambda-new-mass", "0.3"],
             "new-mass-1 (L_new weight 1)": ["--pipeline.model.lambda-new-mass", "1"],
             "new-mass-5 (L_new weight 5)": ["--pipeline.model.lambda-new-mass", "5"],
             "new-mass-20 (L_new weight 20)": ["--pipeline.model.lambda-new-mass", "20"]}
