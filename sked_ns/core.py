@@ -205,6 +205,18 @@ class SkedMixin(SkedEdit):
             return None
         return torch.nn.functional.mse_loss(predicted.float(), truth.float()), outputs, safe.float().mean()
 
+    @torch.no_grad()
+    def _base_sketch_opacity(self, sketch_rays: RayBundle) -> Tensor:
+        """The frozen base's L_sil opacity at the sketch rays (rendered once: the base never changes)."""
+        cached = getattr(self, "_base_sketch_opacity_cache", None)
+        if cached is None or cached.shape[0] != len(sketch_rays):
+            with self._average_appearance():
+                base = self.render_base(self._collide(sketch_rays))
+            cached = (base["accumulation"] if self.config.silhouette_opacity == "any"
+                      else 1.0 - base["preservation_weight"]).detach()
+            self._base_sketch_opacity_cache = cached
+        return cached
+
     # ---- one iteration -----------------------------------------------------------------------
     def get_sked_loss_dict(self, data: Dict, step: int) -> tuple[Dict[str, Tensor], Dict[str, Tensor], Dict[str, Tensor]]:
         """All losses of one iteration from the datamanager's `next_sked` dict; returns (outputs, losses, metrics)."""
@@ -249,8 +261,11 @@ class SkedMixin(SkedEdit):
                 losses.update(sil_losses)
                 metrics.update(sil_metrics)
             if config.lambda_new_mass > 0:
-                # New mass on sketch rays already opaque (or off the sketches) that the guidance does not hold fades.
-                gate = (self.sketch_ray_opacity.gate(samples.frustums.get_positions(), opacity, sketch_masks)
+                # New mass on sketch rays the edit has already made opaque (or off the sketches) fades unless the
+                # guidance holds it; the base's own opacity on a sketch ray (a table behind it) does not count.
+                gate = (self.sketch_ray_opacity.gate(samples.frustums.get_positions(),
+                                                     opacity.detach() - self._base_sketch_opacity(sketch_rays),
+                                                     sketch_masks)
                         if sketch is not None else None)
                 losses["new_mass_loss"] = config.lambda_new_mass * new_mass_loss(
                     density_edit, base_outputs[FieldHeadNames.DENSITY], weight, config.preservation_delta, gate)

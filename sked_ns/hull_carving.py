@@ -4,9 +4,10 @@ L_sil asks each sketch ray for one opaque point and pulls every point of the ray
 hull alike, so it fills the whole hull. Once every sketch ray through a point is opaque, that point's new
 mass is no longer needed by any sketch: it stays only if the guidance asks for it. `SketchRayOpacity`
 looks up, for any 3D point, the editable opacity its ray in each sketch view reached at the latest L_sil
-render; the gate of L_new (losses.new_mass_loss) is the smallest over the views, with pixels outside a
-sketch counting as opaque (no sketch asks for new mass there at all). So L_new never competes with L_sil
-for a sketch ray that is still empty, and empties the bulk of those that are filled.
+render beyond the base's own (a table behind the sketch fills a ray without any new mass); the gate of L_new
+(losses.new_mass_loss) is the smallest over the views, with pixels outside a sketch counting as opaque (no
+sketch asks for new mass there at all). So L_new never competes with L_sil for a sketch ray the edit has not
+filled yet, and empties the bulk of those it has.
 """
 
 from __future__ import annotations
