@@ -7,9 +7,10 @@ field (paper Eq. 4). The base's Gaussians are split once, at set-up:
   stay bit-identical to the base whatever the edit does (they are saved with the edit, which makes
   its checkpoint the whole scene: an edit is a base for the next one);
 - **editable** (the rest, plus new seeds inside the sketches' visual hull): splatfacto's own
-  `gauss_params`, optimised and refined by splatfacto's strategy (gsplat's DefaultStrategy), which
-  never sees the kept ones. L_pres holds each editable base Gaussian to its base values (opacity,
-  colour, position, scale, rotation) weighted by its w.
+  `gauss_params`, optimised at the edit's Adam rates (edit_rates: splatfacto's are sized for 30,000
+  steps) and refined by splatfacto's strategy (gsplat's DefaultStrategy), which never sees the kept
+  ones. L_pres holds each editable base Gaussian to its base values (opacity, colour, position,
+  scale, rotation) weighted by its w.
 
 Both sets are rendered in one pass, kept first; the scene's `means`, `scales`, ... (what
 `ns-export gaussian-splat` and the viewer read) are the two concatenated. The editable opacity
