@@ -75,8 +75,10 @@ SPLATFACTO_RATES = {"means": 1.6e-4, "scales": 0.005, "quats": 0.001, "features_
 """splatfacto's Adam learning rates of the six Gaussian groups, sized for 30,000-step runs."""
 FORMATION_SHARE = 1.0 / 3.0
 """Under the edit's rates a seed can cross each of its ranges (seed_ranges) in this share of the edit's iterations."""
-MIN_FORMATION_STEPS = 10
-"""... but in no fewer steps than this (a very short edit must not take steps as wide as the ranges)."""
+MIN_FORMATION_STEPS = 30
+"""... but in no fewer steps than this: wider steps are noisier (hat, 100 iterations: 3.5x these rates 8.6 dB in
+the changed region vs 12.2) and jolt the editable base Gaussians (a 6-iteration edit at a floor of 10 steps: PSNR
+outside the sketches 20.5 dB)."""
 OPAQUE = 0.99
 """The opacity a seed of the new part must be able to reach."""
 

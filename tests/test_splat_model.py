@@ -356,11 +356,11 @@ def test_a_typed_splat_learning_rates_reaches_the_optimisers(splat_scene, tmp_pa
 
 
 def test_seeds_turn_opaque_and_take_a_colour_within_a_short_edit(splat_scene, tmp_path):
-    """20 steps of an edit (L_sil and reference guidance towards the red hat): under the edit's rates the seeds fill
+    """30 steps of an edit (L_sil and reference guidance towards the red hat): under the edit's rates the seeds fill
     the sketches and leave grey; under splatfacto's (sized for 30,000 steps) they stay a faint grey haze."""
     from sked_ns.splat_model import splat_optimizers
 
-    steps, formed = 20, {}
+    steps, formed = 30, {}
     for choice in ("edit", "splatfacto"):
         config, pipeline = edit_pipeline(splat_scene, tmp_path, splat_learning_rates=choice)
         config.optimizers = splat_optimizers(steps, config.pipeline.model)
@@ -370,5 +370,5 @@ def test_seeds_turn_opaque_and_take_a_colour_within_a_short_edit(splat_scene, tm
         colour = model.gauss_params["features_dc"].detach()[seeds] * SH_C0_TEST  # colour - grey
         formed[choice] = (editable_opacity_in_sketches(model, pipeline.datamanager.sketch_cameras),
                           float(colour.abs().amax(dim=-1).quantile(0.9)))
-    assert formed["edit"][0] > 0.65 and formed["edit"][1] > 0.2, formed  # measured 0.75, 0.49
-    assert formed["splatfacto"][0] < formed["edit"][0] - 0.15 and formed["splatfacto"][1] < 0.05, formed  # 0.49, 0.01
+    assert formed["edit"][0] > 0.7 and formed["edit"][1] > 0.25, formed  # measured 0.79, 0.35
+    assert formed["splatfacto"][0] < formed["edit"][0] - 0.1 and formed["splatfacto"][1] < 0.05, formed  # 0.58, 0.02
