@@ -46,7 +46,11 @@ UNBOUNDED = ("lawn",)  # held out too, reported apart: ground to the horizon and
 # A CPU step of a full-size nerfacto base at 32 px with nerfacto's 400 samples per ray takes ~25 s here:
 # the protocols render at 24 px with a quarter of the samples (a user's --samples-per-ray-scale).
 PROTOCOLS = {"cpu-100": {"iterations": 100, "resolution": 24, "samples_per_ray_scale": 0.25},
-             "long": {"iterations": 500, "resolution": 24, "samples_per_ray_scale": 0.25}}
+             "long": {"iterations": 500, "resolution": 24, "samples_per_ray_scale": 0.25},
+             # Splat renders are cheap: the same edits at 48 px renders (run only when asked, reported apart).
+             "cpu-100-48": {"iterations": 100, "resolution": 48, "samples_per_ray_scale": 0.25},
+             "long-48": {"iterations": 500, "resolution": 48, "samples_per_ray_scale": 0.25}}
+DEFAULT_PROTOCOLS = ("cpu-100", "long")
 BASE_ITERATIONS = 400
 BASE_RAYS = 256
 BASE_LOG2_HASHMAP = 15  # nerfacto's default 19 is sized for real scenes; these are 128 px objects
@@ -95,7 +99,7 @@ def train_base(data: Path, output: Path, iterations: int, log: Path) -> Path:
     return run_dir
 
 
-def step_time(scene: str, work: Path, protocol: Dict) -> Dict:
+def step_time(scene: str, work: Path, protocol: Dict, name: str = "cpu-100") -> Dict:
     """CPU seconds per edit iteration of the scene's splatfacto and nerfacto bases at the same render size: edits of
     5 and 25 iterations each, the difference of their CPU time (set-up cancels) over 20. The nerfacto base is a
     30-iteration `ns-train nerfacto` (the step cost is its architecture's, not its quality's)."""
@@ -110,7 +114,8 @@ def step_time(scene: str, work: Path, protocol: Dict) -> Dict:
         for iterations in (5, 25):
             before = resource.getrusage(resource.RUSAGE_CHILDREN)
             run(ns_train(edit_arguments(base, paths, scene, {**protocol, "iterations": iterations},
-                                        work / "steptime" / f"{kind}-{iterations}")), work / f"steptime-{kind}-{iterations}.log")
+                                        work / "steptime" / f"{kind}-{name}-{iterations}")),
+                work / f"steptime-{kind}-{name}-{iterations}.log")
             after = resource.getrusage(resource.RUSAGE_CHILDREN)
             cpu[iterations] = after.ru_utime + after.ru_stime - before.ru_utime - before.ru_stime
         timings[kind] = {"cpu_s_per_step": (cpu[25] - cpu[5]) / 20, "cpu_s_5_and_25_iterations": [cpu[5], cpu[25]]}
@@ -346,7 +351,9 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--quick", action="store_true", help="hat only, 4 edit iterations, a 30-iteration base")
     parser.add_argument("--scenes", default="hat,vase,crate", help="comma-separated: " + ", ".join(TUNED + HELD_OUT + UNBOUNDED))
-    parser.add_argument("--protocols", default=",".join(PROTOCOLS))
+    parser.add_argument("--protocols", default=None,
+                        help=f"comma-separated, of {', '.join(PROTOCOLS)} (default {','.join(DEFAULT_PROTOCOLS)}; "
+                             "with --step-time: the first one's render size)")
     parser.add_argument("--variants", default=",".join(map(_tag, VARIANTS)),
                         help="comma-separated variant tags (first words): " + ", ".join(map(_tag, VARIANTS)))
     parser.add_argument("--work", type=Path, default=Path("benchmark_work"), help="datasets, bases, edits, logs")
@@ -372,13 +379,14 @@ def main() -> None:
         work = args.work / args.step_time
         if not (work / "sketches" / "sketches.json").exists():
             write_benchmark(args.step_time, work)
-        print(json.dumps(step_time(args.step_time, work, PROTOCOLS["cpu-100"]), indent=2))
+        protocol = (args.protocols or "cpu-100").split(",")[0]
+        print(json.dumps(step_time(args.step_time, work, PROTOCOLS[protocol], protocol), indent=2))
         return
     from sked_ns.demo.benchmark_scenes import write_benchmark
 
     scenes = ["hat"] if args.quick else args.scenes.split(",")
     protocols = {"quick": {"iterations": 4, "resolution": 16, "samples_per_ray_scale": 0.25}} if args.quick else {
-        name: PROTOCOLS[name] for name in args.protocols.split(",")}
+        name: PROTOCOLS[name] for name in (args.protocols or ",".join(DEFAULT_PROTOCOLS)).split(",")}
     variants = ["default"] if args.quick else [_variant(tag) for tag in args.variants.split(",")]
     base_iterations = 30 if args.quick else BASE_ITERATIONS
     results = {"protocol": __doc__.split("Protocols")[1].split("Writes")[0].strip(), "base_iterations": base_iterations,
