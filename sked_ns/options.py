@@ -99,6 +99,10 @@ class SkedOptions:
     seed_size: float = 1.0
     """Splats: seed scale (standard deviation) relative to their mean spacing: at 1 neighbouring seeds overlap, so
     the hull starts as one continuous (transparent) medium."""
+    lambda_new_binary: float = 0.0
+    """Splats: weight of the new Gaussians' binarisation: the binary entropy (as L_sp's) of the opacity the seeds
+    render at the random view, pushing each pixel of the new part to fully opaque or empty; ramped in from a third
+    of the edit (when a seed can have formed, splat_model.edit_rates) to two thirds. 0: off."""
     splat_learning_rates: Literal["edit", "splatfacto"] = "edit"
     """Splats: the Gaussians' Adam rates. "edit": sized to the edit's length, so that a seed can turn opaque, take any
     colour and change its size 4x within a third of the iterations (splat_model.edit_rates); "splatfacto":

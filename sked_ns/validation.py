@@ -20,7 +20,7 @@ from sked_ns.errors import SkedUserError
 MODEL_FLAGS = "--pipeline.model."
 DATAMANAGER_FLAGS = "--pipeline.datamanager."
 LOSS_WEIGHTS = ("lambda_pres", "lambda_colour", "lambda_sil", "lambda_sp", "lambda_new_mass", "lambda_carve",
-                "lambda_photo")
+                "lambda_photo", "lambda_new_binary")
 """Every weight of SKED's objective (paper Eq. 6 and ours): a negative one rewards what its loss penalises."""
 MIN_SKETCH_PIXELS = 16
 """A sketch covering fewer pixels than this in its L_sil render barely pulls (a 4x4 patch)."""
