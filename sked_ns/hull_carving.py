@@ -21,6 +21,12 @@ from sked_ns.cameras import MIN_DEPTH, projection_rows
 from sked_ns.sketches import SketchView
 
 
+OPAQUE = 0.9
+"""A sketch ray counts as filled from this new opacity on; the gate rises from 0 there to 1 at full opacity. A gate
+linear in the opacity settles the edit at partial opacity (L_sil and L_new in balance: region IoS 0.69 instead of
+1.0 on the demo hat without guidance); this one leaves every sketch ray at least this opaque."""
+
+
 class SketchRayOpacity(nn.Module):
     """Per-point lookup into the sketch views' latest L_sil renders (their pixels concatenated, row-major, in the
     datamanager's order: `sketch_view_at(view, resolution)` for each view)."""
@@ -42,12 +48,12 @@ class SketchRayOpacity(nn.Module):
         self.num_pixels = sum(w * h for w, h in zip(widths, heights))
 
     @torch.no_grad()
-    def gate(self, points: Tensor, opacity: Tensor, masks: Tensor) -> Tensor:
-        """min over views of the opacity at the sketch pixel each point (..., 3) projects to, 1 where it projects
-        outside a view's sketch (or its image, or lies behind its camera). `opacity`, `masks`: the flat L_sil render
-        and masks. Returns (..., 1), in [0, 1]."""
+    def gate(self, points: Tensor, opacity: Tensor, masks: Tensor, opaque: float = OPAQUE) -> Tensor:
+        """min over views of how far past `opaque` the opacity at the sketch pixel each point (..., 3) projects to
+        is, (opacity - opaque) / (1 - opaque) clamped to [0, 1]; 1 where it projects outside a view's sketch (or its
+        image, or lies behind its camera). `opacity`, `masks`: the flat L_sil render and masks. Returns (..., 1)."""
         flat = points.reshape(-1, 3).float()
-        opacity = opacity.detach().reshape(-1).float().clamp(0.0, 1.0)
+        opacity = ((opacity.detach().reshape(-1).float() - opaque) / max(1.0 - opaque, 1e-6)).clamp(0.0, 1.0)
         masks = masks.reshape(-1) > 0.5
         if opacity.numel() != self.num_pixels or masks.numel() != self.num_pixels:
             raise ValueError(f"L_sil render has {opacity.numel()} pixels and {masks.numel()} mask pixels; the sketch "
