@@ -99,10 +99,13 @@ class SkedOptions:
     seed_size: float = 1.0
     """Splats: seed scale (standard deviation) relative to their mean spacing: at 1 neighbouring seeds overlap, so
     the hull starts as one continuous (transparent) medium."""
-    lambda_new_binary: float = 0.0
-    """Splats: weight of the new Gaussians' binarisation: the binary entropy (as L_sp's) of the opacity the seeds
-    render at the random view, pushing each pixel of the new part to fully opaque or empty; ramped in from a third
-    of the edit (when a seed can have formed, splat_model.edit_rates) to two thirds. 0: off."""
+    training_rasterize_mode: Literal["antialiased", "base"] = "antialiased"
+    """Splats: how the edit's training renders (random views, sketch views, photos) draw every Gaussian.
+    "antialiased": gsplat's antialiased mode, each Gaussian's opacity scaled down by how much the rasterizer's
+    0.3 px^2 screen blur widened it, so that what is fitted at a small render stays as wide and as opaque at full
+    size; "base": the base's own mode (splatfacto's classic: at a 24 px render a seed of the new part looks about
+    1.5x its area, so at 96 px the part shows gaps and fades). Evaluation and the viewer always draw in the base's
+    mode, so kept Gaussians render exactly as in the base."""
     splat_learning_rates: Literal["edit", "splatfacto"] = "edit"
     """Splats: the Gaussians' Adam rates. "edit": sized to the edit's length, so that a seed can turn opaque, take any
     colour and change its size 4x within a third of the iterations (splat_model.edit_rates); "splatfacto":

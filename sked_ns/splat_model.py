@@ -347,6 +347,14 @@ class SkedSplatModel(SkedEdit, SplatfactoModel):
                           self.preservation_weight(self.gauss_params["means"])])
 
     # ---- rendering ------------------------------------------------------------------------
+    def rasterize_mode(self) -> str:
+        """gsplat's rasterize mode of the next render: antialiased while training (training_rasterize_mode), so
+        Gaussians fitted at a small render are not drawn wider by the screen blur than they are; the base's mode
+        in evaluation and the viewer, where the kept Gaussians must render as in the base."""
+        if self.training and self.config.training_rasterize_mode == "antialiased":
+            return "antialiased"
+        return self.config.rasterize_mode
+
     def _rasterize(self, gaussians: Dict[str, Tensor], camera: Cameras, background: Tensor,
                    extra: Optional[Tensor] = None, depth: bool = False) -> Tuple[Dict[str, Tensor], Dict]:
         """One camera's image: "rgb" on `background`, "accumulation", `extra` per-Gaussian channels composited as
@@ -364,7 +372,7 @@ class SkedSplatModel(SkedEdit, SplatfactoModel):
                 gaussians["means"], gaussians["quats"], torch.exp(gaussians["scales"]),
                 torch.sigmoid(gaussians["opacities"]).squeeze(-1), colours, viewmat(camera_to_world), intrinsics,
                 width, height, render_mode="RGB+ED" if depth else "RGB", absgrad=self.strategy.absgrad,
-                rasterize_mode=self.config.rasterize_mode,
+                rasterize_mode=self.rasterize_mode(),
             )
         render, alpha = render[0], alpha[0]
         outputs = {"rgb": torch.clamp(render[..., :3] + (1 - alpha) * background, 0.0, 1.0), "accumulation": alpha,

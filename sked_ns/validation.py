@@ -20,7 +20,7 @@ from sked_ns.errors import SkedUserError
 MODEL_FLAGS = "--pipeline.model."
 DATAMANAGER_FLAGS = "--pipeline.datamanager."
 LOSS_WEIGHTS = ("lambda_pres", "lambda_colour", "lambda_sil", "lambda_sp", "lambda_new_mass", "lambda_carve",
-                "lambda_photo", "lambda_new_binary")
+                "lambda_photo")
 """Every weight of SKED's objective (paper Eq. 6 and ours): a negative one rewards what its loss penalises."""
 MIN_SKETCH_PIXELS = 16
 """A sketch covering fewer pixels than this in its L_sil render barely pulls (a 4x4 patch)."""
@@ -101,6 +101,9 @@ def option_problems(options) -> List[str]:
                         "(default 0.99; 1 keeps no Gaussian exactly).")
     if not (_is_whole(options.num_seeds) and options.num_seeds >= 0):
         problems.append(f"{flag('num_seeds')} {options.num_seeds!r}: must be a whole number of Gaussians >= 0.")
+    if options.training_rasterize_mode not in ("antialiased", "base"):
+        problems.append(f"{flag('training_rasterize_mode')} {options.training_rasterize_mode!r}: must be "
+                        "'antialiased' or 'base' (the base's own rasterize mode).")
     if not (is_number(options.seed_opacity) and 0 < options.seed_opacity < 1):
         problems.append(f"{flag('seed_opacity')} {options.seed_opacity!r}: an opacity, must be in (0, 1) "
                         "(default 0.005; under 1/255 a seed gets no gradient).")
