@@ -291,9 +291,6 @@ VARIANTS = {"default": [],
             "splatfacto-rates (splatfacto's Adam rates, 1,000 seeds at 0.5x spacing: the previous splat default)": [
                 "--pipeline.model.splat-learning-rates", "splatfacto", "--pipeline.model.num-seeds", "1000",
                 "--pipeline.model.seed-size", "0.5"],
-            # Splat bases: training renders in the base's rasterize mode (splatfacto's classic), the previous default.
-            "base-rasterize (splat training renders in the base's classic mode: the previous splat default)": [
-                "--pipeline.model.training-rasterize-mode", "base"],
             # Issue 23, what carves a two-view visual hull: the guidance's weight, L_sp, the warm-up's proposal boost,
             # L_sil's weight, and L_new (the opacity the edit adds over the base) at three weights.
             "guidance-3x (reference weight 90)": ["--pipeline.model.guidance.weight", "90"],

@@ -99,14 +99,6 @@ class SkedOptions:
     seed_size: float = 1.0
     """Splats: seed scale (standard deviation) relative to their mean spacing: at 1 neighbouring seeds overlap, so
     the hull starts as one continuous (transparent) medium."""
-    training_rasterize_mode: Literal["new-antialiased", "antialiased", "base"] = "base"
-    """Splats: how the edit's training renders (random views, sketch views, photos) draw the Gaussians.
-    "new-antialiased": the new ones (seeds and their children) as gsplat's antialiased mode draws them, each one's
-    opacity scaled down by how much the rasterizer's 0.3 px^2 screen blur widens it, so that a part fitted at a
-    small render is as wide and as opaque at full size (in the classic mode a seed at a 24 px render looks about
-    1.5x its area, so the part fitted there fades at 96 px); the base's Gaussians in the base's own mode.
-    "antialiased": every Gaussian so (the base's too: the vase's kept content lost 1.3 dB); "base": every Gaussian
-    in the base's mode. Evaluation and the viewer always draw in the base's mode."""
     splat_learning_rates: Literal["edit", "splatfacto"] = "edit"
     """Splats: the Gaussians' Adam rates. "edit": sized to the edit's length, so that a seed can turn opaque, take any
     colour and change its size 4x within a third of the iterations (splat_model.edit_rates); "splatfacto":

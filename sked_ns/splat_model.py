@@ -194,28 +194,6 @@ def splat_preservation_loss(params: Dict[str, Tensor], reference: Dict[str, Tens
     return per_gaussian.sum() / count
 
 
-def antialiased_opacities(gaussians: Dict[str, Tensor], opacities: Tensor, chosen: Tensor, viewmat: Tensor,
-                          intrinsics: Tensor, width: int, height: int, eps2d: float = 0.3) -> Tensor:
-    """(N,) opacities with the `chosen` Gaussians' scaled as gsplat's antialiased mode scales them in this view:
-    by sqrt(det S / det(S + eps2d I)) of their screen covariance S, the share of their drawn footprint that is not
-    the rasterizer's blur (so a small Gaussian fitted at a small render is as wide and opaque at a large one)."""
-    from gsplat.cuda._torch_impl import _persp_proj, _quat_scale_to_covar_preci, _world_to_cam
-
-    means, quats = gaussians["means"][chosen], gaussians["quats"][chosen]
-    covars, _ = _quat_scale_to_covar_preci(quats, torch.exp(gaussians["scales"][chosen]), compute_covar=True,
-                                           compute_preci=False)
-    means_c, covars_c = _world_to_cam(means, covars, viewmat)
-    means_c = torch.cat([means_c[..., :2], means_c[..., 2:].clamp_min(1e-3)], dim=-1)  # behind the camera: unseen
-    _, covars2d = _persp_proj(means_c, covars_c, intrinsics, width, height)
-    det = covars2d[..., 0, 0] * covars2d[..., 1, 1] - covars2d[..., 0, 1] * covars2d[..., 1, 0]
-    blurred = (covars2d[..., 0, 0] + eps2d) * (covars2d[..., 1, 1] + eps2d) - covars2d[..., 0, 1] * covars2d[..., 1, 0]
-    # Floored: a degenerate (zero-area) Gaussian gets a tiny share, never a NaN gradient from sqrt at 0.
-    share = torch.sqrt((det / blurred.clamp_min(1e-12)).clamp(1e-8, 1.0))[0]
-    result = opacities.clone()
-    result[chosen] = opacities[chosen] * share
-    return result
-
-
 class SkedSplatModel(SkedEdit, SplatfactoModel):
     """Kept Gaussians (buffers) + editable Gaussians (splatfacto's parameters) + frozen base + sketches + guidance."""
 
@@ -369,25 +347,8 @@ class SkedSplatModel(SkedEdit, SplatfactoModel):
                           self.preservation_weight(self.gauss_params["means"])])
 
     # ---- rendering ------------------------------------------------------------------------
-    def rasterize_mode(self) -> str:
-        """gsplat's rasterize mode of the next render: antialiased while training with training_rasterize_mode
-        "antialiased"; the base's mode otherwise, and always in evaluation and the viewer, where the kept Gaussians
-        must render as in the base."""
-        if self.training and self.config.training_rasterize_mode == "antialiased":
-            return "antialiased"
-        return self.config.rasterize_mode
-
-    def _antialiased_new(self) -> Optional[Tensor]:
-        """(N,) which scene Gaussians a training render draws antialiased on their own (training_rasterize_mode
-        "new-antialiased"): the seeds and their children, fitted at the edit's small renders; None otherwise."""
-        if not (self.training and self.config.training_rasterize_mode == "new-antialiased"):
-            return None
-        return torch.cat([torch.zeros(len(self.kept["means"]), dtype=torch.bool, device=self.device),
-                          ~self.reference["from_base"].to(self.device)])
-
     def _rasterize(self, gaussians: Dict[str, Tensor], camera: Cameras, background: Tensor,
-                   extra: Optional[Tensor] = None, depth: bool = False,
-                   antialiased: Optional[Tensor] = None) -> Tuple[Dict[str, Tensor], Dict]:
+                   extra: Optional[Tensor] = None, depth: bool = False) -> Tuple[Dict[str, Tensor], Dict]:
         """One camera's image: "rgb" on `background`, "accumulation", `extra` per-Gaussian channels composited as
         "extra" (sum_i T_i alpha_i x_i), "depth" (expected) if asked, and the rasterizer's info."""
         camera_to_world = camera.camera_to_worlds.reshape(-1, 3, 4)[:1].to(self.device, torch.float32)
@@ -399,15 +360,11 @@ class SkedSplatModel(SkedEdit, SplatfactoModel):
             colours = gaussian_colours(gaussians, camera_to_world[0, :, 3], self.config.sh_degree)
             if extra is not None:
                 colours = torch.cat([colours, extra.float()], dim=-1)
-            opacities = torch.sigmoid(gaussians["opacities"]).squeeze(-1)
-            if antialiased is not None and bool(antialiased.any()):
-                opacities = antialiased_opacities(gaussians, opacities, antialiased, viewmat(camera_to_world),
-                                                  intrinsics, width, height)
             render, alpha, info = rasterize(
                 gaussians["means"], gaussians["quats"], torch.exp(gaussians["scales"]),
-                opacities, colours, viewmat(camera_to_world), intrinsics,
+                torch.sigmoid(gaussians["opacities"]).squeeze(-1), colours, viewmat(camera_to_world), intrinsics,
                 width, height, render_mode="RGB+ED" if depth else "RGB", absgrad=self.strategy.absgrad,
-                rasterize_mode=self.rasterize_mode(),
+                rasterize_mode=self.config.rasterize_mode,
             )
         render, alpha = render[0], alpha[0]
         outputs = {"rgb": torch.clamp(render[..., :3] + (1 - alpha) * background, 0.0, 1.0), "accumulation": alpha,
@@ -432,7 +389,7 @@ class SkedSplatModel(SkedEdit, SplatfactoModel):
             inside = self.crop_box.within(gaussians["means"]).reshape(-1)
             gaussians = {name: value[inside] for name, value in gaussians.items()}
             extra = extra[inside] if extra is not None else None
-        outputs, info = self._rasterize(gaussians, camera, background, extra, depth, self._antialiased_new())
+        outputs, info = self._rasterize(gaussians, camera, background, extra, depth)
         if self.training and torch.is_grad_enabled() and info["means2d"].requires_grad:
             info["means2d"].retain_grad()  # the strategy reads its gradient after the backward
             self._step_infos.append(info)

@@ -101,9 +101,6 @@ def option_problems(options) -> List[str]:
                         "(default 0.99; 1 keeps no Gaussian exactly).")
     if not (_is_whole(options.num_seeds) and options.num_seeds >= 0):
         problems.append(f"{flag('num_seeds')} {options.num_seeds!r}: must be a whole number of Gaussians >= 0.")
-    if options.training_rasterize_mode not in ("new-antialiased", "antialiased", "base"):
-        problems.append(f"{flag('training_rasterize_mode')} {options.training_rasterize_mode!r}: must be "
-                        "'new-antialiased', 'antialiased' or 'base' (the base's own rasterize mode).")
     if not (is_number(options.seed_opacity) and 0 < options.seed_opacity < 1):
         problems.append(f"{flag('seed_opacity')} {options.seed_opacity!r}: an opacity, must be in (0, 1) "
                         "(default 0.005; under 1/255 a seed gets no gradient).")

@@ -11,7 +11,6 @@ import math
 
 import pytest
 import torch
-from torch import Tensor
 
 from sked_ns.demo import scene as demo_scene
 
@@ -373,73 +372,3 @@ def test_seeds_turn_opaque_and_take_a_colour_within_a_short_edit(splat_scene, tm
                           float(colour.abs().amax(dim=-1).quantile(0.9)))
     assert formed["edit"][0] > 0.7 and formed["edit"][1] > 0.25, formed  # measured 0.79, 0.35
     assert formed["splatfacto"][0] < formed["edit"][0] - 0.1 and formed["splatfacto"][1] < 0.05, formed  # 0.58, 0.02
-
-
-
-def sketch_opacity(model, sketch_views, factor: int) -> Tensor:
-    """Mean editable opacity inside the sketches, rendered `factor` times larger than the sketch views."""
-    fills = []
-    for camera, mask in sketch_views:
-        large = copy.deepcopy(camera)
-        large.rescale_output_resolution(factor)
-        mask = torch.nn.functional.interpolate(mask.reshape(1, 1, *mask.shape[-2:]).float(), scale_factor=factor,
-                                               mode="nearest")[0, 0]
-        opacity = model._render_edit(large, torch.zeros(3), "editable")["extra"][..., 0]
-        fills.append((opacity * mask).sum() / mask.sum())
-    return sum(fills) / len(fills)
-
-
-def test_seeds_fitted_at_a_small_render_show_the_same_opacity_at_a_large_one(splat_scene, tmp_path):
-    """The seeds' opacities fitted so that the sketches' mean editable opacity is 0.3 in 16 px training renders,
-    then shown at 64 px (evaluation, the base's classic mode): with the new Gaussians antialiased in training renders
-    it is 0.3 there too; in the classic mode the rasterizer's screen blur drew each small seed wider at 16 px than
-    it is, so the fitted part is fainter at full size (measured 0.18)."""
-    _, pipeline = edit_pipeline(splat_scene, tmp_path)
-    model = pipeline.model
-    sketch_views = pipeline.datamanager.sketch_cameras
-    start = model.gauss_params["opacities"].detach().clone()
-    from_base = model.reference.from_base
-    shown = {}
-    for mode in ("new-antialiased", "base"):
-        model.config.training_rasterize_mode = mode
-        with torch.no_grad():
-            model.gauss_params["opacities"].copy_(start)
-        optimizer = torch.optim.Adam([model.gauss_params["opacities"]], lr=0.2)
-        model.train()
-        for _ in range(40):
-            optimizer.zero_grad()
-            (sketch_opacity(model, sketch_views, 1) - 0.3).pow(2).backward()
-            model.gauss_params["opacities"].grad[from_base] = 0.0  # the seeds only
-            optimizer.step()
-        model.eval()
-        with torch.no_grad():
-            shown[mode] = float(sketch_opacity(model, sketch_views, 4))
-    model.train()
-    assert abs(shown["new-antialiased"] - 0.3) < 0.05, shown
-    assert shown["base"] < shown["new-antialiased"] - 0.05, shown
-
-
-def test_antialiased_opacities_are_gsplats_for_the_chosen_gaussians_and_finite_at_zero_size():
-    from sked_ns.splat_model import antialiased_opacities
-    from sked_ns.splat_render import project
-
-    generator = torch.Generator().manual_seed(0)
-    count = 40
-    gaussians = {"means": torch.randn(count, 3, generator=generator) * 0.3 + torch.tensor([0.0, 0.0, 3.0]),
-                 "quats": torch.nn.functional.normalize(torch.randn(count, 4, generator=generator), dim=-1),
-                 "scales": torch.randn(count, 3, generator=generator) - 3.0}
-    opacities = torch.rand(count, generator=generator)
-    viewmat, intrinsics = torch.eye(4)[None], torch.tensor([[[30.0, 0.0, 12.0], [0.0, 30.0, 12.0], [0.0, 0.0, 1.0]]])
-    chosen = torch.arange(count) % 2 == 0
-    scaled = antialiased_opacities(gaussians, opacities, chosen, viewmat, intrinsics, 24, 24)
-    gsplat = project(gaussians["means"], gaussians["quats"], torch.exp(gaussians["scales"]), opacities, viewmat,
-                     intrinsics, 24, 24, rasterize_mode="antialiased")[4][0]
-    assert torch.allclose(scaled[chosen], gsplat[chosen], atol=1e-6)
-    assert torch.equal(scaled[~chosen], opacities[~chosen])
-    assert bool((scaled[chosen] < opacities[chosen]).all())
-    scales = gaussians["scales"].clone()
-    scales[:10] = -40.0  # zero-area Gaussians: sqrt at 0 would give an infinite gradient
-    scales.requires_grad_(True)
-    antialiased_opacities({**gaussians, "scales": scales}, opacities, torch.ones(count, dtype=torch.bool), viewmat,
-                          intrinsics, 24, 24).sum().backward()
-    assert bool(torch.isfinite(scales.grad).all())

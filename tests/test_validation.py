@@ -36,7 +36,6 @@ def test_a_negative_or_non_finite_weight_is_refused_by_its_flag(name, value):
     ("silhouette_resolution", 0), ("silhouette_resolution", -1), ("silhouette_resolution", 12.5),
     ("edit_box_warmup", -1), ("keep_threshold", 0.0), ("keep_threshold", 1.5), ("num_seeds", -1), ("num_seeds", 10.5),
     ("seed_opacity", 0.0), ("seed_opacity", 1.0), ("seed_size", 0.0), ("seed_size", float("inf")),
-    ("training_rasterize_mode", "classic"),
 ])
 def test_each_field_out_of_its_range_is_refused_by_its_flag(name, value):
     with pytest.raises(SkedOptionError, match=f"--pipeline.model.{name.replace('_', '-')} "):
