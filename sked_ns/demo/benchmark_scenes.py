@@ -252,10 +252,15 @@ def write_benchmark(name: str, folder: Path, count: int = 48, size: int = IMAGE_
 
     if name in unbounded_scenes.SCENES:  # their own capture: low cameras among the objects
         return unbounded_scenes.write_benchmark(name, folder, count, size)
-    scene = scene_named(name)
+    return write_scene_dataset(scene_named(name), capture_poses(count), folder, size)
+
+
+def write_scene_dataset(scene, poses: List[np.ndarray], folder: Path, size: int = IMAGE_SIZE,
+                        sketch_size: int = IMAGE_SIZE) -> Dict[str, Path]:
+    """`scene`'s photos at `poses` (data/), its edit's ground truth at the eval cameras with changed-region masks
+    (target/), and its sketches at `sketch_size` px (sketches/)."""
     folder = Path(folder)
     focal = FOCAL * size / IMAGE_SIZE
-    poses = capture_poses(count)
     (folder / "data" / "images").mkdir(parents=True, exist_ok=True)
     (folder / "target" / "images").mkdir(parents=True, exist_ok=True)
     frames = []
@@ -265,7 +270,7 @@ def write_benchmark(name: str, folder: Path, count: int = 48, size: int = IMAGE_
         frames.append({"file_path": file_path, "transform_matrix": np.concatenate([pose, [[0, 0, 0, 1]]]).tolist()})
     _write_frames(folder / "data", frames, size)
     targets = []
-    for index in eval_indices(count):
+    for index in eval_indices(len(poses)):
         base = scene.render_base(poses[index], focal, size, size)
         target = scene.render_target(poses[index], focal, size, size)
         changed = (target["rgb"] - base["rgb"]).abs().amax(dim=-1) > 1e-3
@@ -273,7 +278,7 @@ def write_benchmark(name: str, folder: Path, count: int = 48, size: int = IMAGE_
         cv2.imwrite(str(folder / "target" / f"images/frame_{index:03d}_changed.png"), changed.numpy().astype(np.uint8) * 255)
         targets.append({**frames[index], "changed_mask_path": f"images/frame_{index:03d}_changed.png"})
     _write_frames(folder / "target", targets, size)
-    save_sketch_set(scene.sketch_set(), folder / "sketches", overwrite=True)
+    save_sketch_set(scene.sketch_set(sketch_size), folder / "sketches", overwrite=True)
     return {"data": folder / "data", "target": folder / "target", "sketches": folder / "sketches"}
 
 

@@ -89,17 +89,22 @@ def orbit_pose(azimuth_deg: float, elevation_deg: float, radius: float) -> np.nd
     return look_at(orbit_position(azimuth_deg, elevation_deg, radius), np.zeros(3))
 
 
-def trace(
-    sdf: Callable[[Tensor], Tensor], albedo_fn: Callable[[Tensor], Tensor], camera_to_world: np.ndarray, focal: float,
-    width: int, height: int, steps: int = 96,
-) -> dict[str, Tensor]:
-    """Sphere-trace one view of any SDF scene: rgb (h, w, 3), hit mask (h, w) and world hit points (h, w, 3)."""
+def camera_rays(camera_to_world: np.ndarray, focal: float, width: int, height: int) -> tuple[Tensor, Tensor]:
+    """Origins and unit directions (h, w, 3) of a pinhole camera's pixel centres (OpenGL: looking down -z)."""
     pose = torch.as_tensor(camera_to_world, dtype=torch.float32)
     cols, rows = torch.meshgrid(torch.arange(width) + 0.5, torch.arange(height) + 0.5, indexing="xy")
     local = torch.stack([(cols - width / 2) / focal, -(rows - height / 2) / focal, -torch.ones_like(cols)], dim=-1)
     directions = local @ pose[:, :3].T
     directions = directions / directions.norm(dim=-1, keepdim=True)
-    origin = pose[:, 3].expand_as(directions)
+    return pose[:, 3].expand_as(directions), directions
+
+
+def trace(
+    sdf: Callable[[Tensor], Tensor], albedo_fn: Callable[[Tensor], Tensor], camera_to_world: np.ndarray, focal: float,
+    width: int, height: int, steps: int = 96,
+) -> dict[str, Tensor]:
+    """Sphere-trace one view of any SDF scene: rgb (h, w, 3), hit mask (h, w) and world hit points (h, w, 3)."""
+    origin, directions = camera_rays(camera_to_world, focal, width, height)
     travelled = torch.zeros(directions.shape[:-1])
     for _ in range(steps):
         distance = sdf(origin + travelled[..., None] * directions)

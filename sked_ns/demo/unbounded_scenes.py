@@ -33,20 +33,18 @@ from sked_ns.demo.benchmark_scenes import (
     IMAGE_SIZE,
     TRACE_STEPS,
     Part,
-    _png,
-    _write_frames,
     box,
     capsule,
     cylinder,
-    eval_indices,
     solid,
     sphere,
     two_tone,
     union,
+    write_scene_dataset,
 )
-from sked_ns.demo.scene import shade
+from sked_ns.demo.scene import camera_rays, shade
 from sked_ns.random_views import look_at, orbit_position
-from sked_ns.sketches import SketchSet, SketchView, save_sketch_set
+from sked_ns.sketches import SketchSet, SketchView
 
 CAMERA_RADIUS = 2.2
 FOCAL = 1.1 * IMAGE_SIZE
@@ -86,12 +84,7 @@ def trace_unbounded(parts: Tuple[Part, ...], camera_to_world: np.ndarray, focal:
     """
     sdf, albedo = union(parts)
     everything, everything_albedo = union(parts + (Part(ground_sdf, grass),))
-    pose = torch.as_tensor(camera_to_world, dtype=torch.float32)
-    cols, rows = torch.meshgrid(torch.arange(width) + 0.5, torch.arange(height) + 0.5, indexing="xy")
-    local = torch.stack([(cols - width / 2) / focal, -(rows - height / 2) / focal, -torch.ones_like(cols)], dim=-1)
-    directions = local @ pose[:, :3].T
-    directions = directions / directions.norm(dim=-1, keepdim=True)
-    origin = pose[:, 3].expand_as(directions)
+    origin, directions = camera_rays(camera_to_world, focal, width, height)
     travelled = torch.zeros(directions.shape[:-1])
     for _ in range(steps):
         travelled = travelled + sdf(origin + travelled[..., None] * directions).clamp_max(1.0)
@@ -191,26 +184,4 @@ def capture_poses(count: int = 48) -> List[np.ndarray]:
 
 def write_benchmark(name: str, folder: Path, count: int = 48, size: int = IMAGE_SIZE) -> Dict[str, Path]:
     """data/ (the base's photos), target/ (the edit's ground truth at the eval cameras) and sketches/."""
-    scene = SCENES[name]
-    folder = Path(folder)
-    focal = FOCAL * size / IMAGE_SIZE
-    poses = capture_poses(count)
-    (folder / "data" / "images").mkdir(parents=True, exist_ok=True)
-    (folder / "target" / "images").mkdir(parents=True, exist_ok=True)
-    frames = []
-    for index, pose in enumerate(poses):
-        file_path = f"images/frame_{index:03d}.png"
-        _png(folder / "data" / file_path, scene.render_base(pose, focal, size, size)["rgb"])
-        frames.append({"file_path": file_path, "transform_matrix": np.concatenate([pose, [[0, 0, 0, 1]]]).tolist()})
-    _write_frames(folder / "data", frames, size)
-    targets = []
-    for index in eval_indices(count):
-        base = scene.render_base(poses[index], focal, size, size)
-        target = scene.render_target(poses[index], focal, size, size)
-        changed = (target["rgb"] - base["rgb"]).abs().amax(dim=-1) > 1e-3
-        _png(folder / "target" / f"images/frame_{index:03d}.png", target["rgb"])
-        cv2.imwrite(str(folder / "target" / f"images/frame_{index:03d}_changed.png"), changed.numpy().astype(np.uint8) * 255)
-        targets.append({**frames[index], "changed_mask_path": f"images/frame_{index:03d}_changed.png"})
-    _write_frames(folder / "target", targets, size)
-    save_sketch_set(scene.sketch_set(size), folder / "sketches", overwrite=True)
-    return {"data": folder / "data", "target": folder / "target", "sketches": folder / "sketches"}
+    return write_scene_dataset(SCENES[name], capture_poses(count), folder, size, sketch_size=size)
