@@ -156,6 +156,21 @@ def test_edit_quality_rows_name_their_base():
     assert edit_quality._run_tag("splatfacto", "cpu-100", "default") != edit_quality._run_tag("nerfacto", "cpu-100", "default")
 
 
+def test_the_48_px_protocols_run_only_when_asked_and_differ_only_in_render_size():
+    import sys
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+    import edit_quality
+
+    assert edit_quality.DEFAULT_PROTOCOLS == ("cpu-100", "long")  # the README's 24 px rows; 48 px reported apart
+    for small, large in (("cpu-100", "cpu-100-48"), ("long", "long-48")):
+        assert {**edit_quality.PROTOCOLS[small], "resolution": 48} == edit_quality.PROTOCOLS[large]
+    paths = {key: Path("/nowhere") / key for key in ("data", "target", "sketches")}
+    arguments = edit_quality.edit_arguments(Path("/base"), paths, "hat", edit_quality.PROTOCOLS["cpu-100-48"], Path("/out"))
+    for flag in ("--pipeline.model.guidance-resolution", "--pipeline.model.silhouette-resolution"):
+        assert arguments[arguments.index(flag) + 1] == "48"
+
+
 def test_sked_demo_edits_a_splat_base_and_sked_eval_scores_it(tmp_path):
     """`sked-demo --base splatfacto`: the real `ns-train sked` edit of a CPU-fitted splatfacto run, before/after renders
     of the edit's frozen base, novel views; then `sked-eval` on that edit."""
