@@ -20,8 +20,8 @@ from sked_ns.validation import (SkedOptionError, SkedOptionWarning, check_option
 from conftest import random_pose
 
 
-@pytest.mark.parametrize("name", ["lambda_pres", "lambda_colour", "lambda_sil", "lambda_sp", "lambda_carve",
-                                  "lambda_photo"])
+@pytest.mark.parametrize("name", ["lambda_pres", "lambda_colour", "lambda_sil", "lambda_sp", "lambda_new_mass",
+                                  "lambda_carve", "lambda_photo"])
 @pytest.mark.parametrize("value", [-5.0, float("nan"), float("inf")])
 def test_a_negative_or_non_finite_weight_is_refused_by_its_flag(name, value):
     options = SkedNerfactoModelConfig(**{name: value})
