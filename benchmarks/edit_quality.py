@@ -21,7 +21,8 @@ structure-from-motion cloud would be) and saved as `ns-train splatfacto` saves a
 
 Protocols (the paper's 10,000 iterations at 128 px are out of a CPU's reach): `cpu-100` is 100
 iterations, `long` 500, both at 24 px renders with a quarter of the base's samples per ray and
-the presets' warm-up fraction (10%). Figures: novel-view `psnr_keep_gt` of edit and base (vs ground truth) and its drop, `leak`,
+the presets' warm-up fraction (10%); `cpu-100-48` and `long-48` (run only when asked, reported apart) are
+the same at 48 px renders. Figures: novel-view `psnr_keep_gt` of edit and base (vs ground truth) and its drop, `leak`,
 IoS at the sketch views, PSNR against the target inside the changed region. Writes
 benchmarks/results/edit_quality.json and prints the README table.
 """
