@@ -62,6 +62,25 @@ def projection_rows(
     return torch.stack([u, v, depth])
 
 
+MAX_PIXEL = 1e7
+"""Projections are clamped to this many pixels: NaN/inf points and far-off ones stay finite and index-safe."""
+
+
+def pixel_lookup(points: Tensor, rows: Tensor, sizes: Tensor, offsets: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """Project points (M, 3) into every view with `projection_rows` (3, V, 4) and find their pixel in the views'
+    images concatenated row-major (sizes: (2, V, 1) widths and heights; offsets: (V, 1) each image's start).
+    Returns the pixel (2, V, M), floored; the same clamped onto the image; the flat index of that clamped pixel
+    (V, M); and whether the point lies in front of the camera (V, M)."""
+    projected = torch.einsum("cvk,mk->cvm", rows[..., :3], points) + rows[..., 3:]
+    depth = projected[2]
+    in_front = depth > MIN_DEPTH
+    inverse_depth = torch.where(in_front, depth, torch.ones_like(depth)).reciprocal()
+    pixel = (projected[:2] * inverse_depth).nan_to_num(0.0).clamp(-MAX_PIXEL, MAX_PIXEL).floor()
+    pixel_in = torch.minimum(pixel.clamp_min(0.0), sizes - 1)
+    index = torch.addcmul(pixel_in[0], pixel_in[1], sizes[0]).long() + offsets
+    return pixel, pixel_in, index, in_front
+
+
 def pixel_directions(
     pixels: Float[Tensor, "num_pixels 2"],
     camera_to_world: Float[Tensor, "3 4"],

@@ -207,15 +207,17 @@ class SkedMixin(SkedEdit):
 
     @torch.no_grad()
     def _base_sketch_opacity(self, sketch_rays: RayBundle) -> Tensor:
-        """The frozen base's L_sil opacity at the sketch rays (rendered once: the base never changes)."""
+        """The frozen base's L_sil opacity at the sketch rays: rendered once per beta (the base never changes; its
+        editable opacity follows w, which the viewer's beta moves)."""
+        key = (len(sketch_rays), self.config.beta)
         cached = getattr(self, "_base_sketch_opacity_cache", None)
-        if cached is None or cached.shape[0] != len(sketch_rays):
+        if cached is None or cached[0] != key:
             with self._average_appearance():
                 base = self.render_base(self._collide(sketch_rays))
-            cached = (base["accumulation"] if self.config.silhouette_opacity == "any"
-                      else 1.0 - base["preservation_weight"]).detach()
-            self._base_sketch_opacity_cache = cached
-        return cached
+            opacity = (base["accumulation"] if self.config.silhouette_opacity == "any"
+                       else 1.0 - base["preservation_weight"]).detach()
+            cached = self._base_sketch_opacity_cache = (key, opacity)
+        return cached[1]
 
     # ---- one iteration -----------------------------------------------------------------------
     def get_sked_loss_dict(self, data: Dict, step: int) -> tuple[Dict[str, Tensor], Dict[str, Tensor], Dict[str, Tensor]]:

@@ -17,7 +17,7 @@ from typing import Sequence
 import torch
 from torch import Tensor, nn
 
-from sked_ns.cameras import MIN_DEPTH, projection_rows
+from sked_ns.cameras import pixel_lookup, projection_rows
 from sked_ns.sketches import SketchView
 
 
@@ -58,13 +58,7 @@ class SketchRayOpacity(nn.Module):
         if opacity.numel() != self.num_pixels or masks.numel() != self.num_pixels:
             raise ValueError(f"L_sil render has {opacity.numel()} pixels and {masks.numel()} mask pixels; the sketch "
                              f"views hold {self.num_pixels}.")
-        projected = torch.einsum("cvk,mk->cvm", self.rows[..., :3], flat) + self.rows[..., 3:]
-        depth = projected[2]
-        in_front = depth > MIN_DEPTH
-        pixel = (projected[:2] / torch.where(in_front, depth, torch.ones_like(depth))).nan_to_num(-1.0).floor()
-        on_image = in_front & (pixel >= 0).all(dim=0) & (pixel < self.sizes).all(dim=0)
-        pixel = torch.minimum(pixel.clamp_min(0.0), self.sizes - 1)
-        index = (pixel[1] * self.sizes[0] + pixel[0]).long() + self.starts
-        on_sketch = on_image & masks[index]
-        per_view = torch.where(on_sketch, opacity[index], torch.ones_like(depth))
+        pixel, pixel_in, index, in_front = pixel_lookup(flat, self.rows, self.sizes, self.starts)
+        on_sketch = in_front & (pixel == pixel_in).all(dim=0) & masks[index]
+        per_view = torch.where(on_sketch, opacity[index], torch.ones_like(index, dtype=opacity.dtype))
         return per_view.amin(dim=0).reshape(*points.shape[:-1], 1)

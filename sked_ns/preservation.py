@@ -24,11 +24,9 @@ from jaxtyping import Float
 from scipy.ndimage import distance_transform_edt
 from torch import Tensor, nn
 
-from sked_ns.cameras import MIN_DEPTH, projection_rows
+from sked_ns.cameras import pixel_lookup, projection_rows
 from sked_ns.sketches import SketchView
 
-# Keeps far-off projections finite and exactly representable as integer pixel indices.
-_MAX_PIXEL = 1e7
 # Points per lookup call: keeps temporaries in cache and out of the allocator's page-fault path.
 _CHUNK = 1 << 16
 
@@ -65,14 +63,7 @@ def _sketch_distance(
     rows: (3, V, 4) projection rows; distance_maps: flat, in pixels; offsets: (V, 1) starts;
     sizes: (2, V, 1) widths and heights; mean_scale: (V, 1) = 1 / (V * width).
     """
-    projected = torch.einsum("cvk,mk->cvm", rows[..., :3], points) + rows[..., 3:]
-    depth = projected[2]
-    in_front = depth > MIN_DEPTH
-    inverse_depth = torch.where(in_front, depth, torch.ones_like(depth)).reciprocal()
-    # NaN/inf points and far-off projections stay finite and index-safe.
-    pixel = (projected[:2] * inverse_depth).nan_to_num(0.0).clamp(-_MAX_PIXEL, _MAX_PIXEL).floor()
-    pixel_in = torch.minimum(pixel.clamp_min(0.0), sizes - 1)
-    index = torch.addcmul(pixel_in[0], pixel_in[1], sizes[0]).long() + offsets
+    pixel, pixel_in, index, in_front = pixel_lookup(points, rows, sizes, offsets)
     distance = distance_maps.take(index)
     off_image = pixel - pixel_in
     # sqrt of squares, not hypot: libm's hypot is scalar and slow, and |off| <= 1e7 cannot overflow.
