@@ -138,12 +138,16 @@ class BenchmarkScene:
     def render_target(self, pose: np.ndarray, focal: float, width: int, height: int) -> Dict[str, Tensor]:
         return trace(*union(self.base_parts + self.edit_parts), pose, focal, width, height, steps=TRACE_STEPS)
 
+    def sketch_pose(self, azimuth: float, elevation: float) -> np.ndarray:
+        """A sketch view's camera-to-world (3, 4): on the capture's sphere, looking at the origin."""
+        return orbit_pose(azimuth, elevation, CAMERA_RADIUS)
+
     def sketch_set(self, size: int = 128) -> SketchSet:
         """Masks = the added part's whole silhouette from each view (3 px dilated); data-frame poses."""
         views = []
         focal = 1.1 * size
         for azimuth, elevation in self.sketch_views:
-            pose = orbit_pose(azimuth, elevation, CAMERA_RADIUS)
+            pose = self.sketch_pose(azimuth, elevation)
             hits = trace(*union(self.edit_parts), pose, focal, size, size, steps=TRACE_STEPS)["hit"].numpy()
             mask = cv2.dilate(hits.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)
             views.append(SketchView(mask=mask, camera_to_world=pose, fl_x=focal, fl_y=focal, cx=size / 2, cy=size / 2,

@@ -24,12 +24,12 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Dict, List, Tuple
 
-import cv2
 import numpy as np
 import torch
 from torch import Tensor
 
 from sked_ns.demo.benchmark_scenes import (
+    BenchmarkScene,
     IMAGE_SIZE,
     TRACE_STEPS,
     Part,
@@ -44,7 +44,6 @@ from sked_ns.demo.benchmark_scenes import (
 )
 from sked_ns.demo.scene import camera_rays, shade
 from sked_ns.random_views import look_at, orbit_position
-from sked_ns.sketches import SketchSet, SketchView
 
 CAMERA_RADIUS = 2.2
 FOCAL = 1.1 * IMAGE_SIZE
@@ -107,18 +106,9 @@ BLOCK_TOP = 0.5
 
 
 @dataclass(frozen=True)
-class UnboundedScene:
-    """Objects on an endless ground under a sky, an added part (the edit), and the views it is sketched from."""
-
-    name: str
-    base_parts: Tuple[Part, ...]
-    edit_parts: Tuple[Part, ...]
-    sketch_views: Tuple[Tuple[float, float], ...]
-    """(azimuth, elevation) in degrees (capture_pose)."""
-    description: str
-
-    def edit_sdf(self, points: Tensor) -> Tensor:
-        return union(self.edit_parts)[0](points)
+class UnboundedScene(BenchmarkScene):
+    """Objects on an endless ground under a sky, an added part (the edit), and the views it is sketched from
+    ((azimuth, elevation) in degrees: capture_pose)."""
 
     def render_base(self, pose: np.ndarray, focal: float, width: int, height: int) -> Dict[str, Tensor]:
         return trace_unbounded(self.base_parts, pose, focal, width, height)
@@ -126,24 +116,8 @@ class UnboundedScene:
     def render_target(self, pose: np.ndarray, focal: float, width: int, height: int) -> Dict[str, Tensor]:
         return trace_unbounded(self.base_parts + self.edit_parts, pose, focal, width, height)
 
-    def sketch_set(self, size: int = IMAGE_SIZE) -> SketchSet:
-        """Masks = the added part's whole silhouette from each view (3 px dilated); data-frame poses."""
-        views = []
-        focal = FOCAL * size / IMAGE_SIZE
-        for azimuth, elevation in self.sketch_views:
-            pose = capture_pose(azimuth, elevation)
-            hits = _trace_parts(self.edit_parts, pose, focal, size)
-            mask = cv2.dilate(hits.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)
-            views.append(SketchView(mask=mask, camera_to_world=pose, fl_x=focal, fl_y=focal, cx=size / 2, cy=size / 2,
-                                    name=f"{self.name}@{azimuth:g}"))
-        return SketchSet(views=views, frame="data")
-
-
-def _trace_parts(parts: Tuple[Part, ...], pose: np.ndarray, focal: float, size: int) -> np.ndarray:
-    """Where `parts` alone (no ground) cover the image: the sketch's silhouette."""
-    from sked_ns.demo.scene import trace
-
-    return trace(*union(parts), pose, focal, size, size, steps=TRACE_STEPS)["hit"].numpy()
+    def sketch_pose(self, azimuth: float, elevation: float) -> np.ndarray:
+        return capture_pose(azimuth, elevation)
 
 
 SCENES: Dict[str, UnboundedScene] = {
