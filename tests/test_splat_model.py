@@ -372,3 +372,64 @@ def test_seeds_turn_opaque_and_take_a_colour_within_a_short_edit(splat_scene, tm
                           float(colour.abs().amax(dim=-1).quantile(0.9)))
     assert formed["edit"][0] > 0.7 and formed["edit"][1] > 0.25, formed  # measured 0.79, 0.35
     assert formed["splatfacto"][0] < formed["edit"][0] - 0.1 and formed["splatfacto"][1] < 0.05, formed  # 0.58, 0.02
+
+
+def test_a_typed_splat_refinement_sizes_the_schedule_to_the_edit(splat_scene, tmp_path):
+    from nerfstudio.models.splatfacto import SplatfactoModelConfig
+
+    from sked_ns.edit_run import edit_config
+    from sked_ns.splat_model import refine_schedule
+    from sked_ns.trainer import resolve_edit
+
+    splatfacto = SplatfactoModelConfig()
+    for choice in ("edit", "splatfacto"):
+        config = edit_config(splat_scene["base"], splat_scene["data"], splat_scene["sketches"], tmp_path / choice,
+                             iterations=200)
+        config.pipeline.model.splat_refinement = choice
+        resolve_edit(config)
+        model = config.pipeline.model
+        schedule = {name: getattr(model, name) for name in ("warmup_length", "refine_every", "stop_split_at")}
+        if choice == "edit":
+            assert schedule == refine_schedule(200)
+            assert 0 < schedule["warmup_length"] < schedule["stop_split_at"] <= 200  # it runs within the edit
+        else:
+            assert schedule == {name: getattr(splatfacto, name) for name in schedule}  # from step 500: never here
+
+
+def test_refine_schedule_runs_within_any_edit_length():
+    from sked_ns.splat_model import MIN_FORMATION_STEPS, refine_schedule
+
+    for iterations in (0, 1, 40, 100, 500, 10_000, 10**7):
+        schedule = refine_schedule(iterations)
+        assert schedule["refine_every"] >= 1 and schedule["stop_split_at"] >= schedule["warmup_length"]
+        assert schedule["warmup_length"] >= MIN_FORMATION_STEPS  # seeds can have formed before the first pruning
+        if iterations >= 100:
+            refinements = range(schedule["warmup_length"] + 1, schedule["stop_split_at"])
+            assert sum(step % schedule["refine_every"] == 0 for step in refinements) >= 5, (iterations, schedule)
+            assert schedule["stop_split_at"] < iterations
+
+
+def test_the_edit_refines_only_new_content(splat_scene, tmp_path):
+    """Under the edit's refinement the transparent seeds are pruned and the seeds grow, while the editable base
+    Gaussians, faint ones included, are neither pruned nor split; refining every editable Gaussian (splatfacto's
+    choice) splits them."""
+    from sked_ns.splat_model import refine_schedule
+
+    schedule, counts = refine_schedule(40), {}  # one refinement, at step 31
+    for choice in ("edit", "splatfacto"):
+        config, pipeline = edit_pipeline(splat_scene, tmp_path / choice, splat_refinement=choice, **schedule)
+        model = pipeline.model
+        from_base = model.reference.from_base.clone()
+        with torch.no_grad():  # faint editable base Gaussians, under the pruning threshold (L_pres holds them there)
+            model.gauss_params["opacities"][from_base] = math.log(0.05 / 0.95)
+            targets = {name: value.clone() for name, value in model.reference.tensors().items()}
+            targets["opacities"][from_base] = math.log(0.05 / 0.95)
+            model.reference.assign(targets)
+        train(config, pipeline, steps=schedule["warmup_length"] + 2)
+        from_base, opacity = model.reference.from_base, torch.sigmoid(model.gauss_params["opacities"].detach())[:, 0]
+        counts[choice] = (int(from_base.sum()), int((~from_base).sum()), float(opacity[~from_base].min()),
+                          float(opacity[from_base].min()))
+    base_count = int(edit_pipeline(splat_scene, tmp_path / "fresh")[1].model.reference.from_base.sum())
+    assert counts["edit"][0] == base_count and counts["edit"][3] < 0.1, counts  # none split, faint ones not pruned
+    assert counts["edit"][1] != NUM_SEEDS and counts["edit"][2] >= 0.1 - 1e-6, counts  # seeds refined, clear ones gone
+    assert counts["splatfacto"][0] != base_count, counts  # every editable Gaussian refined: base ones split (486)
