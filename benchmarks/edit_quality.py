@@ -292,9 +292,6 @@ VARIANTS = {"default": [],
             "splatfacto-rates (splatfacto's Adam rates, 1,000 seeds at 0.5x spacing: the previous splat default)": [
                 "--pipeline.model.splat-learning-rates", "splatfacto", "--pipeline.model.num-seeds", "1000",
                 "--pipeline.model.seed-size", "0.5"],
-            # Splat bases: splatfacto's refinement schedule (from step 500), which a CPU edit never reaches.
-            "splatfacto-refinement (densify and prune from step 500, every 100: never in these edits)": [
-                "--pipeline.model.splat-refinement", "splatfacto"],
             # Splat bases: each training render at 2x its size, averaged down (the Gaussians' footprint between pixels).
             "supersample-2 (splat training renders at 2x, averaged down)": ["--pipeline.model.splat-supersampling", "2"],
             # Issue 23, what carves a two-view visual hull: the guidance's weight, L_sp, the warm-up's proposal boost,

@@ -107,11 +107,6 @@ class SkedOptions:
     splat_supersampling: int = 1
     """Splats: the random and sketch views are rendered at this many times their resolution and averaged down to it,
     so that a Gaussian's footprint between two pixel centres is fitted too (1: one sample a pixel)."""
-    splat_refinement: Literal["edit", "splatfacto"] = "edit"
-    """Splats: when splatfacto's densification and pruning run on the editable Gaussians. "edit": sized to the edit's
-    length (splat_model.refine_schedule: from a third of the iterations, when a seed can have turned opaque, ten
-    times over the middle of the edit); "splatfacto": its own (from step 500, every 100), which an edit of 500
-    iterations or fewer never reaches."""
 
     @property
     def effective_lambda_pres(self) -> float:

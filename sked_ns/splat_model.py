@@ -30,7 +30,6 @@ from typing import Dict, List, Optional, Tuple, Type
 
 import torch
 from gsplat.strategy import DefaultStrategy
-from gsplat.strategy.ops import remove
 from nerfstudio.cameras.camera_optimizers import CameraOptimizerConfig
 from nerfstudio.cameras.cameras import Cameras
 from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackAttributes, TrainingCallbackLocation
@@ -61,19 +60,6 @@ def area_downsample(image: Tensor, factor: int) -> Tensor:
     """An (H * factor, W * factor, C) image averaged over factor x factor blocks to (H, W, C)."""
     pooled = torch.nn.functional.avg_pool2d(image.permute(2, 0, 1)[None], factor)
     return pooled[0].permute(1, 2, 0)
-
-
-class NewContentStrategy(DefaultStrategy):
-    """splatfacto's strategy (gsplat's DefaultStrategy) pruning only the new content: the transparent seeds, never an
-    editable base Gaussian (one the base left faint is still part of what L_pres holds). The model marks the new
-    Gaussians in the strategy's state ("sked_new"), which the strategy's ops carry through each split."""
-
-    @torch.no_grad()
-    def _prune_gs(self, params, optimizers, state, step: int) -> int:
-        prune = state["sked_new"] & (torch.sigmoid(params["opacities"].flatten()) < self.prune_opa)
-        if prune.any():
-            remove(params=params, optimizers=optimizers, state=state, mask=prune)
-        return int(prune.sum())
 
 
 @dataclass
@@ -120,27 +106,6 @@ def edit_rates(iterations: int, seed_opacity: float) -> Dict[str, float]:
     steps = max(FORMATION_SHARE * max(int(iterations), 0), MIN_FORMATION_STEPS)
     ranges = seed_ranges(seed_opacity)
     return {name: max(rate, ranges.get(name, 0.0) / steps) for name, rate in SPLATFACTO_RATES.items()}
-
-
-SPLATFACTO_REFINE_EVERY = 100
-"""splatfacto's steps between two refinements."""
-REFINEMENTS = 5
-"""How many times the edit's refinement schedule densifies and prunes (refine_schedule)."""
-REFINE_STOP_SHARE = 0.8
-"""... the last of them this far into the edit, so that what it splits or prunes settles before the end."""
-
-
-def refine_schedule(iterations: int) -> Dict[str, int]:
-    """splatfacto's refinement fields (warmup_length, refine_every, stop_split_at) sized to an edit: its own start at
-    step 500, every 100, is sized for 30,000-step runs, which a CPU edit never reaches. Refinement starts once a seed
-    can have turned opaque (edit_rates' formation steps), so that pruning culls the seeds the edit left transparent,
-    not every seed still forming, and runs REFINEMENTS times before REFINE_STOP_SHARE of the edit (or every
-    SPLATFACTO_REFINE_EVERY steps, as splatfacto does, where that is more often)."""
-    iterations = max(int(iterations), 0)
-    start = int(math.ceil(max(FORMATION_SHARE * iterations, MIN_FORMATION_STEPS)))
-    stop = int(REFINE_STOP_SHARE * iterations)
-    every = min(max((stop - start) // REFINEMENTS, 1), SPLATFACTO_REFINE_EVERY)
-    return {"warmup_length": start, "refine_every": every, "stop_split_at": max(stop, start)}
 
 
 def splat_optimizers(iterations: int, options: Optional[SkedOptions] = None) -> Dict[str, Dict]:
@@ -291,8 +256,7 @@ class SkedSplatModel(SkedEdit, SplatfactoModel):
         """splatfacto's strategy and settings (its populate_modules), the opacity reset as the edit sets it."""
         config = self.config
         reset_every = config.reset_alpha_every * config.refine_every if config.reset_alpha_every > 0 else NEVER
-        strategy = NewContentStrategy if config.splat_refinement == "edit" else DefaultStrategy
-        return strategy(
+        return DefaultStrategy(
             prune_opa=config.cull_alpha_thresh, grow_grad2d=config.densify_grad_thresh,
             grow_scale3d=config.densify_size_thresh, grow_scale2d=config.split_screen_size,
             prune_scale3d=config.cull_scale_thresh, prune_scale2d=config.cull_screen_size,
@@ -482,16 +446,12 @@ class SkedSplatModel(SkedEdit, SplatfactoModel):
         info = self._editable_info(infos)
         if step == 0 or info is None or count == 0:
             return
-        if self.config.splat_refinement == "edit":
-            info = self._new_content_only(info)
         self.strategy_state["sked_row"] = torch.arange(count, device=self.device)  # the strategy carries it along
-        self.strategy_state["sked_new"] = ~self.reference.from_base.to(self.device)
         try:
             self.strategy.step_post_backward(params=self.gauss_params, optimizers=self.optimizers,
                                              state=self.strategy_state, step=step, info=info, packed=False)
         finally:
             rows = self.strategy_state.pop("sked_row")
-            self.strategy_state.pop("sked_new")
         if len(rows) != count or not torch.equal(rows, torch.arange(count, device=rows.device)):
             self._follow_densification(rows, count)
 
@@ -519,14 +479,6 @@ class SkedSplatModel(SkedEdit, SplatfactoModel):
         means2d = SimpleNamespace(grad=torch.cat(grads), absgrad=torch.cat(absgrads))
         return {"means2d": means2d, "radii": torch.cat(radii), "width": 2, "height": 2, "n_cameras": 1,
                 "gaussian_ids": None}
-
-    def _new_content_only(self, info: Dict) -> Dict:
-        """The step's info with the editable base Gaussians unseen (no gradient, no screen size), so that only the
-        seeds and their children grow: splitting a base Gaussian the edit has not moved only blurs what L_pres holds
-        (crate, 100 iterations, refining every editable Gaussian: kept content -1.2 dB)."""
-        new = (~self.reference.from_base).to(info["radii"].device)
-        grad, absgrad = info["means2d"].grad * new[:, None], info["means2d"].absgrad * new[:, None]
-        return {**info, "means2d": SimpleNamespace(grad=grad, absgrad=absgrad), "radii": info["radii"] * new}
 
     @torch.no_grad()
     def _follow_densification(self, rows: Tensor, count: int) -> None:

@@ -33,7 +33,7 @@ from sked_ns.safe_step import GuardedGradScaler, GuardedOptimizers, StepGuard
 from sked_ns.core import SkedOptions
 from sked_ns.nerfacto_model import SkedNerfactoModelConfig
 from sked_ns.ngp_model import SkedNGPModelConfig
-from sked_ns.splat_model import SkedSplatModelConfig, refine_schedule, splat_optimizers
+from sked_ns.splat_model import SkedSplatModelConfig, splat_optimizers
 from sked_ns.validation import check_options
 
 
@@ -128,9 +128,6 @@ def start_edit(config: SkedTrainerConfig, base: BaseScene) -> None:
     model.base_checkpoint = base.checkpoint
     if isinstance(model, SkedSplatModelConfig):  # the presets' optimisers are a NeRF's: Gaussians take the splat edit's
         config.optimizers = splat_optimizers(config.max_num_iterations, model)
-        if model.splat_refinement == "edit":  # splatfacto's own schedule starts after a CPU edit has ended
-            for name, value in refine_schedule(config.max_num_iterations).items():
-                setattr(model, name, value)
     config.load_dir = None  # the base is not a run to resume: fresh optimisers, step 0
     config.load_step = None
     CONSOLE.print(f"Editing the {base.method} scene {base.run_dir} ({base.checkpoint.name})")
