@@ -402,15 +402,19 @@ class SkedSplatModel(SkedEdit, SplatfactoModel):
             self._step_infos.append(info)
         return outputs
 
-    def _render_supersampled(self, camera: Cameras, background: Tensor, channel: Optional[str] = None
-                             ) -> Dict[str, Tensor]:
-        """_render_edit at splat_supersampling times the camera's resolution, each image averaged back down to it."""
+    def _render_supersampled(self, camera: Cameras, background: Tensor, channel: Optional[str] = None,
+                             base: bool = False) -> Dict[str, Tensor]:
+        """The edit (or with `base`, the frozen base: the guidance's reference outside the change is the base's render,
+        which must be sampled as the edit is) at splat_supersampling times the camera's resolution, each image
+        averaged back down to it."""
+        render = (lambda view: self.render_base(view, background)) if base else (
+            lambda view: self._render_edit(view, background, channel))
         factor = int(self.config.splat_supersampling)
         if factor <= 1:
-            return self._render_edit(camera, background, channel)
+            return render(camera)
         fine = copy.deepcopy(camera)
         fine.rescale_output_resolution(float(factor))
-        outputs = self._render_edit(fine, background, channel)
+        outputs = render(fine)
         return {name: area_downsample(value, factor) if value.dim() == 3 else value for name, value in outputs.items()}
 
     @torch.no_grad()
@@ -529,12 +533,12 @@ class SkedSplatModel(SkedEdit, SplatfactoModel):
             losses["carve_loss"] = config.lambda_carve * (free * -log_empty).mean() if len(free) else free.sum()
         else:
             image = view["rgb"].permute(2, 0, 1)[None]
-            base_image = lambda: self.render_base(camera, background)["rgb"].permute(2, 0, 1)[None]  # noqa: E731
+            base_image = lambda: self._render_supersampled(camera, background, base=True)["rgb"].permute(2, 0, 1)[None]  # noqa: E731
             losses.update(self.guidance_losses(image, data["random_camera"], base_image, step))
             if config.effective_lambda_sil > 0 and data.get("sketch_views"):
                 opacities, masks = [], []
                 for sketch_camera, mask in data["sketch_views"]:
-                    sketch = self._render_supersampled(sketch_camera, background, channel="editable")
+                    sketch = self._render_edit(sketch_camera, background, channel="editable")
                     opacity = sketch["extra"] if config.silhouette_opacity == "editable" else sketch["accumulation"]
                     opacities.append(opacity.reshape(-1))
                     masks.append(mask.reshape(-1).to(opacity))

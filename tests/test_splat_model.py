@@ -240,9 +240,9 @@ def test_a_saved_edit_loads_its_refined_gaussians(splat_scene, tmp_path):
             assert torch.equal(value, saved[key]), key
 
 
-@pytest.mark.parametrize("beta", [1e-3, 1.0])
-def test_no_nan_at_beta_opacity_and_scale_extremes(splat_scene, tmp_path, beta):
-    _, pipeline = edit_pipeline(splat_scene, tmp_path, beta=beta)
+@pytest.mark.parametrize("beta, supersampling", [(1e-3, 1), (1.0, 4)])
+def test_no_nan_at_beta_opacity_and_scale_extremes(splat_scene, tmp_path, beta, supersampling):
+    _, pipeline = edit_pipeline(splat_scene, tmp_path, beta=beta, splat_supersampling=supersampling)
     model = pipeline.model
     with torch.no_grad():
         count = len(model.gauss_params["means"])
@@ -372,3 +372,37 @@ def test_seeds_turn_opaque_and_take_a_colour_within_a_short_edit(splat_scene, tm
                           float(colour.abs().amax(dim=-1).quantile(0.9)))
     assert formed["edit"][0] > 0.7 and formed["edit"][1] > 0.25, formed  # measured 0.79, 0.35
     assert formed["splatfacto"][0] < formed["edit"][0] - 0.1 and formed["splatfacto"][1] < 0.05, formed  # 0.58, 0.02
+
+
+def test_area_downsample_is_the_block_mean():
+    from sked_ns.splat_model import area_downsample
+
+    image = torch.rand(12, 18, 4)
+    for factor in (1, 2, 3):
+        fast = area_downsample(image, factor)
+        height, width = 12 // factor, 18 // factor
+        plain = torch.stack([torch.stack([image[y * factor:(y + 1) * factor, x * factor:(x + 1) * factor].reshape(-1, 4)
+                                          .mean(dim=0) for x in range(width)]) for y in range(height)])
+        assert fast.shape == (height, width, 4) and torch.allclose(fast, plain, atol=1e-6), factor
+
+
+def test_supersampled_training_renders_keep_the_guidance_reference_sampled_as_the_edit(splat_scene, tmp_path):
+    """At splat_supersampling 2 the random view is rendered at 2x and averaged down to the guidance's size, and so is the
+    base render the reference guidance uses outside the change: an unchanged edit (no seeds) matches it."""
+    images = {}
+    for factor in (1, 2):
+        _, pipeline = edit_pipeline(splat_scene, tmp_path / str(factor), num_seeds=0, splat_supersampling=factor)
+        model, seen = pipeline.model, {}
+        original = model.guidance_losses
+
+        def capture(image, random_camera, base_image, step, original=original, seen=seen):
+            seen["image"], seen["base"] = image.detach(), (base_image() if callable(base_image) else base_image)
+            return original(image, random_camera, lambda: seen["base"], step)
+
+        model.guidance_losses = capture
+        torch.manual_seed(0)
+        sked_losses(pipeline)
+        assert seen["image"].shape[-2:] == (24, 24)  # the guidance's resolution, whatever the sampling
+        assert float((seen["image"] - seen["base"]).abs().max()) < 1e-5, factor  # 0.76 if the base were sampled once
+        images[factor] = seen["image"]
+    assert not torch.equal(images[1], images[2])  # 2x2 samples a pixel do change the image (its edges)

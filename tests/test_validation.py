@@ -36,6 +36,7 @@ def test_a_negative_or_non_finite_weight_is_refused_by_its_flag(name, value):
     ("silhouette_resolution", 0), ("silhouette_resolution", -1), ("silhouette_resolution", 12.5),
     ("edit_box_warmup", -1), ("keep_threshold", 0.0), ("keep_threshold", 1.5), ("num_seeds", -1), ("num_seeds", 10.5),
     ("seed_opacity", 0.0), ("seed_opacity", 1.0), ("seed_size", 0.0), ("seed_size", float("inf")),
+    ("splat_supersampling", 0), ("splat_supersampling", 1.5),
 ])
 def test_each_field_out_of_its_range_is_refused_by_its_flag(name, value):
     with pytest.raises(SkedOptionError, match=f"--pipeline.model.{name.replace('_', '-')} "):
@@ -124,14 +125,14 @@ def test_splat_settings_are_typeable_for_any_base_and_reach_the_splat_model():
     from sked_ns.trainer import edit_model_config
 
     typed = SkedNerfactoModelConfig(keep_threshold=0.95, num_seeds=600, seed_opacity=0.02, seed_size=0.8,
-                                    splat_learning_rates="splatfacto")
+                                    splat_learning_rates="splatfacto", splat_supersampling=3)
     splat = edit_model_config(typed, SplatfactoModelConfig())
     assert isinstance(splat, SkedSplatModelConfig)
     assert (splat.keep_threshold, splat.num_seeds, splat.seed_opacity, splat.seed_size,
-            splat.splat_learning_rates) == (0.95, 600, 0.02, 0.8, "splatfacto")
+            splat.splat_learning_rates, splat.splat_supersampling) == (0.95, 600, 0.02, 0.8, "splatfacto", 3)
 
 
-@pytest.mark.parametrize("name, value", [("keep_threshold", 0.3), ("num_seeds", 500_000)])
+@pytest.mark.parametrize("name, value", [("keep_threshold", 0.3), ("num_seeds", 500_000), ("splat_supersampling", 8)])
 def test_splat_settings_that_edit_too_much_are_warned(name, value):
     with pytest.warns(SkedOptionWarning, match=f"--pipeline.model.{name.replace('_', '-')} "):
         warn_unusual_options(SkedNerfactoModelConfig(**{name: value}))
