@@ -293,8 +293,9 @@ VARIANTS = {"default": [],
                 "--pipeline.model.splat-learning-rates", "splatfacto", "--pipeline.model.num-seeds", "1000",
                 "--pipeline.model.seed-size", "0.5"],
             # Splat bases: each training render at 2x its size, averaged down (the Gaussians' footprint between pixels).
+            "supersample-1 (splat training renders at one sample a pixel: the previous splat default)": [
+                "--pipeline.model.splat-supersampling", "1"],
             "supersample-2 (splat training renders at 2x, averaged down)": ["--pipeline.model.splat-supersampling", "2"],
-            "supersample-4 (splat training renders at 4x, averaged down)": ["--pipeline.model.splat-supersampling", "4"],
             # Issue 23, what carves a two-view visual hull: the guidance's weight, L_sp, the warm-up's proposal boost,
             # L_sil's weight, and L_new (the opacity the edit adds over the base) at three weights.
             "guidance-3x (reference weight 90)": ["--pipeline.model.guidance.weight", "90"],
