@@ -296,6 +296,10 @@ VARIANTS = {"default": [],
             "supersample-1 (splat training renders at one sample a pixel: the previous splat default)": [
                 "--pipeline.model.splat-supersampling", "1"],
             "supersample-2 (splat training renders at 2x, averaged down)": ["--pipeline.model.splat-supersampling", "2"],
+            "seeds-1000 (1,000 seeds as wide as their spacing)": ["--pipeline.model.num-seeds", "1000"],
+            "seeds-60 (60 seeds as wide as their spacing)": ["--pipeline.model.num-seeds", "60"],
+            "seeds-3000 (3,000 seeds as wide as their spacing)": ["--pipeline.model.num-seeds", "3000"],
+            "seeds-10000 (10,000 seeds as wide as their spacing)": ["--pipeline.model.num-seeds", "10000"],
             # Issue 23, what carves a two-view visual hull: the guidance's weight, L_sp, the warm-up's proposal boost,
             # L_sil's weight, and L_new (the opacity the edit adds over the base) at three weights.
             "guidance-3x (reference weight 90)": ["--pipeline.model.guidance.weight", "90"],

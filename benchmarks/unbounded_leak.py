@@ -36,6 +36,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import edit_quality as eq  # noqa: E402
 
 CANDIDATES = {
+    "default": ("", []),
     "clip-random": ("clip_random_views", []),
     "no-boost": ("", ["--pipeline.model.edit-box-density", "0"]),
     "lambda-sp-0": ("", ["--pipeline.model.lambda-sp", "0"]),
@@ -44,6 +45,10 @@ CANDIDATES = {
     "default-seed1": ("", ["--pipeline.datamanager.seed", "1"]),
     "default-32px": ("", ["--pipeline.model.guidance-resolution", "32", "--pipeline.model.silhouette-resolution", "32"]),
     "sketch-sil": ("", ["--pipeline.model.silhouette-normalisation", "sketch"]),
+    # Adam moves every hash entry that gets any gradient by about its rate (eps 1e-15): far entries touched only by
+    # tiny, noisy gradients random-walk. A larger eps scales such steps down with their gradient.
+    "grid-eps-1e-9": ("", ["--optimizers.hash-grids.optimizer.eps", "1e-9"]),
+    "grid-eps-1e-7": ("", ["--optimizers.hash-grids.optimizer.eps", "1e-7"]),
 }
 
 
