@@ -47,6 +47,8 @@ CANDIDATES = {
     "sketch-sil": ("", ["--pipeline.model.silhouette-normalisation", "sketch"]),
     # Adam moves every hash entry that gets any gradient by about its rate (eps 1e-15): far entries touched only by
     # tiny, noisy gradients random-walk. A larger eps scales such steps down with their gradient.
+    "no-guidance": ("", ["--pipeline.model.guidance.weight", "0"]),
+    "no-sil": ("", ["--pipeline.model.lambda-sil", "0"]),
     "grid-eps-1e-9": ("", ["--optimizers.hash-grids.optimizer.eps", "1e-9"]),
     "grid-eps-1e-7": ("", ["--optimizers.hash-grids.optimizer.eps", "1e-7"]),
 }

@@ -182,7 +182,7 @@ def warn_unusual_options(options, memory: Optional[int] = None) -> List[str]:
                         "weight down to it stay editable, so most of the scene may change (default 0.99).")
     if options.num_seeds > 100_000:
         messages.append(f"{flag('num_seeds')} {options.num_seeds} (splat bases): more new Gaussians than most whole "
-                        "scenes' edited parts need; each costs every render (default 250, densification adds more).")
+                        "scenes' edited parts need; each costs every render (default 3,000, densification adds more).")
     if options.splat_supersampling > 4:
         messages.append(f"{flag('splat_supersampling')} {options.splat_supersampling} (splat bases): each training render "
                         f"costs {options.splat_supersampling ** 2}x the pixels for little more than 2-4 give.")
