@@ -48,7 +48,15 @@ CANDIDATES = {
     # Adam moves every hash entry that gets any gradient by about its rate (eps 1e-15): far entries touched only by
     # tiny, noisy gradients random-walk. A larger eps scales such steps down with their gradient.
     "no-guidance": ("", ["--pipeline.model.guidance.weight", "0"]),
+    "one-iteration": ("", ["--max-num-iterations", "1"]),  # what the edit's set-up and first step alone change
+    "one-iteration-lr-0": ("", ["--max-num-iterations", "1", "--optimizers.hash-grids.optimizer.lr", "1e-12",
+                                "--optimizers.fields.optimizer.lr", "1e-12",
+                                "--optimizers.proposal-networks.optimizer.lr", "1e-12"]),  # the set-up alone
     "no-sil": ("", ["--pipeline.model.lambda-sil", "0"]),
+    # Adam's first step moves every parameter with any gradient by its full rate (m / sqrt(v) = sign(g)): a warm-up
+    # of the edit's learning rates keeps that first jolt off the far field's hash entries.
+    "warmup-10": ("", [f"--optimizers.{group}.scheduler.warmup-steps" if i == 0 else "10"
+                       for group in ("hash-grids", "fields", "proposal-networks") for i in range(2)]),
     "grid-eps-1e-9": ("", ["--optimizers.hash-grids.optimizer.eps", "1e-9"]),
     "grid-eps-1e-7": ("", ["--optimizers.hash-grids.optimizer.eps", "1e-7"]),
 }

@@ -14,5 +14,5 @@ def test_each_candidate_is_one_patch_or_flags(name):
     patch, flags = unbounded_leak.CANDIDATES[name]
     assert bool(patch) != bool(flags) or (name == "default" and not patch and not flags)  # one change each
     assert not patch or callable(getattr(unbounded_leak, patch))
-    assert all(flag.startswith(("--pipeline.", "--optimizers.")) for flag in flags[::2])
+    assert all(flag.startswith(("--pipeline.", "--optimizers.", "--max-num-iterations")) for flag in flags[::2])
 
