@@ -533,7 +533,8 @@ class SkedSplatModel(SkedEdit, SplatfactoModel):
             losses["carve_loss"] = config.lambda_carve * (free * -log_empty).mean() if len(free) else free.sum()
         else:
             image = view["rgb"].permute(2, 0, 1)[None]
-            base_image = lambda: self._render_supersampled(camera, background, base=True)["rgb"].permute(2, 0, 1)[None]  # noqa: E731
+            base_image = lambda: self._render_supersampled(  # noqa: E731
+                camera, background, base=True)["rgb"].permute(2, 0, 1)[None]
             losses.update(self.guidance_losses(image, data["random_camera"], base_image, step))
             if config.effective_lambda_sil > 0 and data.get("sketch_views"):
                 opacities, masks = [], []

@@ -108,8 +108,8 @@ def option_problems(options) -> List[str]:
         problems.append(f"{flag('seed_size')} {options.seed_size!r}: must be a finite number > 0 (times the seeds' "
                         "spacing).")
     if not (_is_whole(options.splat_supersampling) and options.splat_supersampling >= 1):
-        problems.append(f"{flag('splat_supersampling')} {options.splat_supersampling!r}: renders per pixel side, must be "
-                        "a whole number >= 1 (1: one sample a pixel).")
+        problems.append(f"{flag('splat_supersampling')} {options.splat_supersampling!r}: renders per pixel side, "
+                        "must be a whole number >= 1 (1: one sample a pixel).")
     return problems
 
 
@@ -184,8 +184,8 @@ def warn_unusual_options(options, memory: Optional[int] = None) -> List[str]:
         messages.append(f"{flag('num_seeds')} {options.num_seeds} (splat bases): more new Gaussians than most whole "
                         "scenes' edited parts need; each costs every render (default 3,000, densification adds more).")
     if options.splat_supersampling > 4:
-        messages.append(f"{flag('splat_supersampling')} {options.splat_supersampling} (splat bases): each training render "
-                        f"costs {options.splat_supersampling ** 2}x the pixels for little more than 2-4 give.")
+        messages.append(f"{flag('splat_supersampling')} {options.splat_supersampling} (splat bases): each training "
+                        f"render costs {options.splat_supersampling ** 2}x the pixels for little more than 2-4 give.")
     for message in messages:
         warn(message)
     return messages
