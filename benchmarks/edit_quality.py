@@ -271,16 +271,20 @@ def table(results: Dict) -> str:
 
 
 _BEFORE_RESIDUAL = ["--pipeline.model.colour-residual", "False"]
+_SOFT_HOLD = ["--pipeline.model.keep-threshold", "1"]  # the paper's soft hold (no sample held exactly)
 VARIANTS = {"default": [],
             "no-colour-residual": _BEFORE_RESIDUAL,
-            "paper (occupancy target, whole-ray L_sil, no photo anchor)": [
+            "paper (occupancy target, whole-ray L_sil, no photo anchor, no exact hold)": [
                 "--pipeline.model.preservation-target", "occupancy", "--pipeline.model.silhouette-opacity", "any",
-                "--pipeline.model.lambda-photo", "0", *_BEFORE_RESIDUAL],
+                "--pipeline.model.lambda-photo", "0", *_BEFORE_RESIDUAL, *_SOFT_HOLD],
             "previous-default (occupancy target, whole-ray L_sil, photo anchor on)": [
                 "--pipeline.model.preservation-target", "occupancy", "--pipeline.model.silhouette-opacity", "any",
-                *_BEFORE_RESIDUAL],
+                *_BEFORE_RESIDUAL, *_SOFT_HOLD],
             "density-target-only (whole-ray L_sil, photo anchor on)": ["--pipeline.model.silhouette-opacity", "any",
-                                                                       *_BEFORE_RESIDUAL],
+                                                                       *_BEFORE_RESIDUAL, *_SOFT_HOLD],
+            # NeRF bases: kept content held by L_pres and the photo anchor only, as before held_field.py.
+            "soft-hold (keep-threshold 1: no sample held exactly; L_pres and the photo anchor hold kept content)":
+                _SOFT_HOLD,
             # Guidance is the only loss on the random views' colours: what leaks without it is L_sil's.
             "no-guidance (L_sil, L_pres, photo anchor only)": ["--pipeline.model.guidance.weight", "0"],
             # A small sketch has few rays to pull its part into being: L_sil per sketch pixel.

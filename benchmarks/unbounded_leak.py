@@ -59,6 +59,8 @@ CANDIDATES = {
                        for group in ("hash-grids", "fields", "proposal-networks") for i in range(2)]),
     "grid-eps-1e-9": ("", ["--optimizers.hash-grids.optimizer.eps", "1e-9"]),
     "grid-eps-1e-7": ("", ["--optimizers.hash-grids.optimizer.eps", "1e-7"]),
+    # The fix (held_field.py): samples far from the sketches are the base's. The rows above ran without it, as this.
+    "soft-hold": ("", ["--pipeline.model.keep-threshold", "1"]),
 }
 
 

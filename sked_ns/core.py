@@ -25,6 +25,7 @@ from torch import Tensor
 from sked_ns.base_scene import read_model_state, uses_tcnn
 from sked_ns.colour_residual import ColourResidual
 from sked_ns.edit import SkedEdit
+from sked_ns.held_field import held_field_outputs
 from sked_ns.hull_carving import SketchRayOpacity
 from sked_ns.losses import new_mass_loss, occupancy_log_probabilities, preservation_loss, sparsity_loss
 from sked_ns.options import (  # noqa: F401  (re-exported: their home was this module)
@@ -170,6 +171,37 @@ class SkedMixin(SkedEdit):
         preserved = per_ray_sum((weights * self.preservation_weight(positions)).detach(), accumulation, ray_indices)
         return (preserved + (1 - accumulation.detach()).clamp(0, 1)).clamp(0, 1)
 
+    # ---- kept content held exactly (held_field.py) --------------------------------------------
+    def _kept(self, positions: Tensor) -> Optional[Tensor]:
+        """Which points are kept exactly as the base (w above keep_threshold); None when nothing is held."""
+        if self.config.keep_threshold >= 1:
+            return None
+        return self.preservation_weight(positions)[..., 0] > self.config.keep_threshold
+
+    def _held_outputs(self, ray_samples: RaySamples, evaluate) -> Tuple[Dict, Dict]:
+        """(edit's field outputs with kept samples the base's, base's field outputs); `evaluate(field, samples)`."""
+        base_field, mode = self.base_field, self.base_field.training
+        base_field.train(self.field.training)  # the same appearance (a photo's while anchoring) on both sides
+        try:
+            return held_field_outputs(lambda s: self._edit_colour(evaluate(self.field, s), s),
+                                      lambda s: evaluate(base_field, s), ray_samples,
+                                      self._kept(ray_samples.frustums.get_positions()))
+        finally:
+            base_field.train(mode)
+
+    def held_density_fn(self, edit_fn, base_fn):
+        """A density function that is the base's at kept points (samplers and occupancy grids follow what renders)."""
+        def density(positions: Tensor, times: Optional[Tensor] = None) -> Tensor:
+            value = edit_fn(positions, times)
+            kept = self._kept(positions)
+            if kept is None or not bool(kept.any()):
+                return value
+            with torch.no_grad():
+                base = base_fn(positions, times)
+            return torch.where(kept[..., None], base.to(value.dtype), value)
+
+        return density
+
     @contextlib.contextmanager
     def _average_appearance(self):
         """Random and sketch views have no training image: use the evaluation appearance."""
@@ -181,6 +213,11 @@ class SkedMixin(SkedEdit):
             self.field.train(was_training)
 
     # ---- the base-photo anchor on rays ------------------------------------------------------
+    def photo_anchor_acts(self) -> bool:
+        # Its rays have w above photo_threshold everywhere: held exactly (and so without a gradient) unless
+        # keep_threshold is higher.
+        return super().photo_anchor_acts() and self.config.keep_threshold > self.config.photo_threshold
+
     def photo_rays_kept(self, rays: RayBundle) -> Tensor:
         """Which (collided) photo rays never come near the editable region."""
         count = len(rays)
@@ -233,8 +270,7 @@ class SkedMixin(SkedEdit):
 
         # L_pres on the random view's samples.
         weight = self.preservation_weight(samples.frustums.get_positions())
-        with torch.no_grad():
-            base_outputs = self.base_field(samples)
+        base_outputs = view.pop("_base_field_outputs")
         density_edit = field_outputs[FieldHeadNames.DENSITY]
         losses["preservation_loss"] = config.effective_lambda_pres * preservation_loss(
             density_edit, field_outputs[FieldHeadNames.RGB], base_outputs[FieldHeadNames.DENSITY],
@@ -273,7 +309,7 @@ class SkedMixin(SkedEdit):
                     density_edit, base_outputs[FieldHeadNames.DENSITY], weight, config.preservation_delta, gate)
         rendered = [view] + ([sketch] if sketch is not None else [])
         photo = data.get("photo")
-        if photo is not None and config.effective_lambda_photo > 0:
+        if photo is not None and self.photo_anchor_acts():
             anchored = self.photo_anchor(*photo)
             if anchored is not None:
                 loss, photo_view, kept = anchored

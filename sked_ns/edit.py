@@ -187,6 +187,10 @@ class SkedEdit:
             metrics["nonfinite_losses"] = torch.tensor(float(len(bad)))
 
     # ---- the base-photo anchor --------------------------------------------------------------
+    def photo_anchor_acts(self) -> bool:
+        """Whether a step needs the base's photos (the datamanager loads them only then)."""
+        return self.config.effective_lambda_photo > 0
+
     _photos_checked: bool = False
     base_photo_psnr: Optional[float] = None
     """The base's PSNR at the first batch of anchored photo pixels (check_base_explains_photos)."""

@@ -57,6 +57,10 @@ class SkedNerfactoModel(SkedMixin, NerfactoModel):
         self._setup_sked()
         self._load_base_weights()
         self._freeze_base(field=self.field, proposal_networks=self.proposal_networks)
+        # Proposals see kept space as the base does, so a ray through kept space only samples as the base's did.
+        base_fns = [network.density_fn for network in self.frozen_base.proposal_networks]
+        self.density_fns = [self.held_density_fn(fn, base_fns[min(i, len(base_fns) - 1)])
+                            for i, fn in enumerate(self.density_fns)]
         self._boost_proposals_in_edit_box()
 
     @torch.no_grad()
@@ -117,9 +121,12 @@ class SkedNerfactoModel(SkedMixin, NerfactoModel):
         and the preservation-weight output need them; nerfacto's own get_outputs returns neither).
         """
         ray_samples, weights_list, ray_samples_list = self.proposal_sampler(ray_bundle, density_fns=density_fns)
-        field_outputs = field.forward(ray_samples, compute_normals=self.config.predict_normals)
+        evaluate = lambda module, samples: module.forward(samples, compute_normals=self.config.predict_normals)  # noqa: E731
+        base_outputs = None
         if field is self.field:
-            field_outputs = self._edit_colour(field_outputs, ray_samples)
+            field_outputs, base_outputs = self._held_outputs(ray_samples, evaluate)
+        else:
+            field_outputs = evaluate(field, ray_samples)
         if self.config.use_gradient_scaling:
             field_outputs = scale_gradients_by_distance_squared(field_outputs, ray_samples)
         weights = ray_samples.get_weights(field_outputs[FieldHeadNames.DENSITY])
@@ -142,6 +149,8 @@ class SkedNerfactoModel(SkedMixin, NerfactoModel):
                 self.renderer_normals(field_outputs[FieldHeadNames.PRED_NORMALS], weights=weights))
         for i in range(self.config.num_proposal_iterations):
             outputs[f"prop_depth_{i}"] = self.renderer_depth(weights=weights_list[i], ray_samples=ray_samples_list[i])
+        if base_outputs is not None:
+            outputs["_base_field_outputs"] = base_outputs  # L_pres compares the two at the same samples
         return outputs, ray_samples, field_outputs, weights
 
     def _render(self, ray_bundle: RayBundle):
@@ -155,6 +164,7 @@ class SkedNerfactoModel(SkedMixin, NerfactoModel):
 
     def get_outputs(self, ray_bundle: RayBundle):
         outputs, samples, _, weights = self._render_with(ray_bundle, self.field, self.density_fns)
+        outputs.pop("_base_field_outputs", None)
         if self.training:
             return outputs
         # Proposal samples use a lot of memory and only the interlevel loss needs them.

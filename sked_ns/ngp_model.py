@@ -60,6 +60,9 @@ class SkedNGPModel(SkedMixin, NGPModel):
         # The base's own sampler: its grid and its density (culling empty and hidden samples, as the base renders).
         base = self.frozen_base
         self.frozen_base = base.with_sampler(VolumetricSampler(occupancy_grid=base.occupancy_grid, density_fn=base.field.density_fn))
+        # The edit's grid and marcher see kept cells as the base's: a kept cell never turns off.
+        self.held_density = self.held_density_fn(self.field.density_fn, base.field.density_fn)
+        self.sampler.density_fn = self.held_density
         resolution = self.occupancy_grid.resolution.tolist()
         cells = occupancy_grid_mask(self.edit_box, self.scene_aabb.tolist(), resolution, self.config.grid_levels)
         cells = self._hull_cells(cells)
@@ -105,7 +108,7 @@ class SkedNGPModel(SkedMixin, NGPModel):
         before = grid.binaries.clone()
         # The base's cells are already known: sample them like instant-ngp after its own warm-up.
         grid.update_every_n_steps(
-            step=step, occ_eval_fn=lambda x: self.field.density_fn(x) * self.config.render_step_size,
+            step=step, occ_eval_fn=lambda x: self.held_density(x) * self.config.render_step_size,
             n=self.config.grid_update_interval, warmup_steps=0,
         )
         if self.edit_box_boost() > 0:
@@ -124,9 +127,11 @@ class SkedNGPModel(SkedMixin, NGPModel):
                 render_step_size=self.config.render_step_size, alpha_thre=alpha_thre,
                 cone_angle=self.config.cone_angle,
             )
-        field_outputs = field_module(ray_samples)
+        base_outputs = None
         if field_module is self.field:
-            field_outputs = self._edit_colour(field_outputs, ray_samples)
+            field_outputs, base_outputs = self._held_outputs(ray_samples, lambda field, samples: field(samples))
+        else:
+            field_outputs = field_module(ray_samples)
         weights = render_weights(
             ray_samples.frustums.starts[..., 0], ray_samples.frustums.ends[..., 0],
             field_outputs[FieldHeadNames.DENSITY][..., 0], ray_indices, num_rays,
@@ -140,6 +145,8 @@ class SkedNGPModel(SkedMixin, NGPModel):
             "num_samples_per_ray": torch.bincount(ray_indices, minlength=num_rays),
         }
         outputs["_weights"], outputs["_ray_indices"] = weights, ray_indices
+        if base_outputs is not None:
+            outputs["_base_field_outputs"] = base_outputs  # L_pres compares the two at the same samples
         return outputs, ray_samples, field_outputs
 
     def _render(self, ray_bundle: RayBundle):
@@ -162,6 +169,7 @@ class SkedNGPModel(SkedMixin, NGPModel):
 
     def _with_preservation(self, outputs: Dict[str, Tensor], samples: RaySamples) -> Dict[str, Tensor]:
         weights, ray_indices = outputs.pop("_weights"), outputs.pop("_ray_indices")
+        outputs.pop("_base_field_outputs", None)
         outputs["preservation_weight"] = self.expected_preservation(
             samples.frustums.get_positions(), weights, outputs["accumulation"], ray_indices=ray_indices)
         return outputs

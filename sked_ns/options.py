@@ -79,17 +79,20 @@ class SkedOptions:
     """Samples per ray relative to the base's (nerfacto: sample counts; instant-ngp: 1 / step size)."""
     lambda_photo: float = 1.0
     """Weight of the base-photo anchor (photo_anchor.py): the base's training photos, at rays that never come
-    near the editable region, keep the edit as the base was trained. 0: the paper's losses only."""
+    near the editable region, keep the edit as the base was trained. 0: the paper's losses only. NeRF bases hold
+    such rays exactly already (keep_threshold), so there it acts only if keep_threshold is above photo_threshold."""
     photo_threshold: float = 0.99
     """A photo ray anchors the edit only if every point on it has a preservation weight above this."""
     base_camera_optimizer: Literal["off", "SO3xR3", "SE3"] = "off"
     """The base's camera optimisation (copied from it): its learnt pose corrections are applied to photo rays."""
     ablation: Literal["none", "no-preserve", "no-silhouette", "text-only"] = "none"
     """The paper's ablations: drop L_pres, drop L_sil, or both (text only: the sketches only aim the views)."""
-    # Gaussian-splat bases only (splat_model.py); here so `ns-train sked` can parse them for any base.
     keep_threshold: float = 0.99
-    """Splats: base Gaussians whose centre has a preservation weight above this are kept exactly (never optimised,
-    densified, pruned or reset); the others are editable, held to the base by L_pres."""
+    """What is far from the sketches is kept exactly: NeRF samples with a preservation weight above this take the frozen
+    base's density and colour (held_field.py; the editable field is trained only at the others), and splat bases'
+    Gaussians whose centre's weight is above it are never optimised, densified, pruned or reset. The rest is held to
+    the base by L_pres. 1 holds nothing exactly: the paper's soft L_pres alone."""
+    # Gaussian-splat bases only (splat_model.py); here so `ns-train sked` can parse them for any base.
     num_seeds: int = 3000
     """Splats: new Gaussians seeded inside the sketches' visual hull for new content (none when carving), each as wide
     as their spacing (seed_size). With supersampled training renders more seeds give a sharper part (hat / vase /

@@ -70,7 +70,7 @@ class SkedPipeline(VanillaPipeline):
 
     def get_train_loss_dict(self, step: int):
         self.prepare_guidance()
-        photos = self.model.config.effective_lambda_photo > 0
+        photos = self.model.photo_anchor_acts()
         images = getattr(self.model, "PHOTOS_AS_IMAGES", False)  # splats render whole photos, NeRFs ray batches
         data = self.datamanager.next_sked(step, photo_rays=photos and not images, photo_view=photos and images)
         return self.model.get_sked_loss_dict(data, step)

@@ -95,10 +95,10 @@ def option_problems(options) -> List[str]:
     if not (_is_whole(options.edit_box_warmup) and options.edit_box_warmup >= 0):
         problems.append(f"{flag('edit_box_warmup')} {options.edit_box_warmup!r}: must be a whole number of "
                         "iterations >= 0.")
-    # Gaussian-splat bases' settings.
     if not (is_number(options.keep_threshold) and 0 < options.keep_threshold <= 1):
         problems.append(f"{flag('keep_threshold')} {options.keep_threshold!r}: a preservation weight, must be in (0, 1] "
-                        "(default 0.99; 1 keeps no Gaussian exactly).")
+                        "(default 0.99; 1 holds nothing exactly, the paper's soft L_pres alone).")
+    # Gaussian-splat bases' settings.
     if not (_is_whole(options.num_seeds) and options.num_seeds >= 0):
         problems.append(f"{flag('num_seeds')} {options.num_seeds!r}: must be a whole number of Gaussians >= 0.")
     if not (is_number(options.seed_opacity) and 0 < options.seed_opacity < 1):
@@ -178,8 +178,9 @@ def warn_unusual_options(options, memory: Optional[int] = None) -> List[str]:
         messages.append(f"{flag('photo_threshold')} {options.photo_threshold:g}: photo rays through the editable "
                         "region would hold it to the base's photos, undoing the edit (default 0.99).")
     if options.keep_threshold < 0.5:
-        messages.append(f"{flag('keep_threshold')} {options.keep_threshold:g} (splat bases): Gaussians with a preservation "
-                        "weight down to it stay editable, so most of the scene may change (default 0.99).")
+        messages.append(f"{flag('keep_threshold')} {options.keep_threshold:g}: everything with a preservation weight "
+                        "above it is held exactly as the base, so the edit can act only at the sketches' core and the "
+                        "new part is cut off at its edges (default 0.99; 1 holds nothing exactly).")
     if options.num_seeds > 100_000:
         messages.append(f"{flag('num_seeds')} {options.num_seeds} (splat bases): more new Gaussians than most whole "
                         "scenes' edited parts need; each costs every render (default 3,000, densification adds more).")

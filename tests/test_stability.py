@@ -73,6 +73,8 @@ CASES = {
     "samples-per-ray-0.01": {"samples_per_ray_scale": 0.01},
     "samples-per-ray-4": {"samples_per_ray_scale": 4.0},
     "ablation-text-only": {"ablation": "text-only"},
+    "keep-threshold-1e-6": {"keep_threshold": 1e-6},  # nearly every sample held: steps with nothing editable
+    "keep-threshold-1": {"keep_threshold": 1.0},  # nothing held: the paper's soft L_pres
 }
 
 

@@ -1,0 +1,54 @@
+"""Kept content held exactly: samples far from the sketches take the frozen base's field outputs.
+
+SKED's L_pres holds kept content softly: the editable field is a copy of the base and is pulled
+back towards it wherever the preservation weight w is high. A hash grid shares its entries between
+cells (2^15 per level hold far more cells than that), so every step on the new part also moves
+density and colour far from it, which L_pres and the photo anchor can only pull back afterwards:
+specks of new opacity across a capture's far field (issue 22). The splat model holds its kept
+Gaussians exactly; this is the same for a field: at a sample whose w exceeds `keep_threshold` the
+edit *is* the base (outputs copied, no gradient), and the editable field is evaluated, and
+trained, only at the others. `keep_threshold` 1 gives the paper's soft hold (w never exceeds 1).
+"""
+
+from __future__ import annotations
+
+from typing import Callable, Dict, Optional, Tuple
+
+import torch
+from nerfstudio.cameras.rays import RaySamples
+from torch import Tensor
+
+
+def held_field_outputs(
+    edit_field: Callable[[RaySamples], Dict],
+    base_field: Callable[[RaySamples], Dict],
+    ray_samples: RaySamples,
+    kept: Optional[Tensor],
+) -> Tuple[Dict, Dict]:
+    """(composite outputs, base outputs) at every sample: the base's where `kept`, the edit's elsewhere.
+
+    `kept` has the samples' shape (None: nothing held, the edit everywhere). The base is evaluated
+    at every sample without gradients (L_pres compares the two there); the editable field only at
+    the samples not kept, so kept samples cost no backward pass. The fields map RaySamples of any
+    batch shape to a dict of (*shape, channels) tensors, as nerfstudio's fields do.
+    """
+    with torch.no_grad():
+        base = base_field(ray_samples)
+    if kept is None:
+        return edit_field(ray_samples), base
+    editable = ~kept
+    if bool(editable.all()):
+        return edit_field(ray_samples), base
+    if not bool(editable.any()):
+        # Nothing editable along these rays: the base, with a zero-gradient link to the edit so a loss over them
+        # still has a graph (one sample's evaluation).
+        probe = edit_field(ray_samples.flatten()[:1])
+        return {key: value + 0.0 * probe[key].sum() for key, value in base.items() if key in probe}, base
+    edited = edit_field(ray_samples[editable])
+    outputs = {}
+    for key, value in edited.items():
+        held = base[key].detach().clone().to(value.dtype)
+        held[editable] = value  # index_put keeps the edit's gradient at its samples
+        outputs[key] = held
+    return outputs, base
+
