@@ -115,3 +115,13 @@ def test_kept_samples_carry_the_base_outputs_and_only_the_others_a_gradient(scen
     assert all(g is None or not g.any() for g in kept_gradients), "a kept sample trains the field"
     edit_gradients = torch.autograd.grad(loss(~kept), parameters, allow_unused=True)
     assert any(g is not None and g.any() for g in edit_gradients)
+
+
+@pytest.mark.parametrize("keep_threshold, acts", [(0.99, False), (0.999, True), (1.0, True)])
+def test_the_photo_anchor_runs_only_where_its_rays_are_not_all_held(scene, tmp_path, keep_threshold, acts):
+    # Its rays have w above photo_threshold (0.99) everywhere: at keep_threshold 0.99 each is the base's exactly.
+    config = edit_config(scene["base"], scene["data"], scene["sketches"], tmp_path, iterations=1)
+    config.pipeline.model.keep_threshold = keep_threshold
+    resolve_edit(config)
+    model = config.pipeline.setup(device="cpu", test_mode="val").model
+    assert model.photo_anchor_acts() is acts
