@@ -1,10 +1,10 @@
 """Kept content held exactly: samples far from the sketches take the frozen base's field outputs.
 
 SKED's L_pres holds kept content softly: the editable field is a copy of the base and is pulled
-back towards it wherever the preservation weight w is high. A hash grid shares its entries between
-cells (2^15 per level hold far more cells than that), so every step on the new part also moves
-density and colour far from it, which L_pres and the photo anchor can only pull back afterwards:
-specks of new opacity across a capture's far field (issue 22). The splat model holds its kept
+back towards it wherever the preservation weight w is high. Every step on the new part also moves
+density and colour far from it (likely through hash entries shared between cells), which L_pres and
+the photo anchor can only pull back afterwards: specks of new opacity across a capture's far field
+(issue 22). The splat model holds its kept
 Gaussians exactly; this is the same for a field: at a sample whose w exceeds `keep_threshold` the
 edit *is* the base (outputs copied, no gradient), and the editable field is evaluated, and
 trained, only at the others. `keep_threshold` 1 gives the paper's soft hold (w never exceeds 1).
@@ -34,11 +34,9 @@ def held_field_outputs(
     """
     with torch.no_grad():
         base = base_field(ray_samples)
-    if kept is None:
+    if kept is None or not bool(kept.any()):
         return edit_field(ray_samples), base
     editable = ~kept
-    if bool(editable.all()):
-        return edit_field(ray_samples), base
     if not bool(editable.any()):
         # Nothing editable along these rays: the base, with a zero-gradient link to the edit so a loss over them
         # still has a graph (one sample's evaluation).
@@ -51,4 +49,3 @@ def held_field_outputs(
         held[editable] = value  # index_put keeps the edit's gradient at its samples
         outputs[key] = held
     return outputs, base
-
