@@ -129,8 +129,8 @@ def edit_arguments(base: Path, paths: Dict[str, Path], scene: str, protocol: Dic
     subcommand, where tyro reads them)."""
     iterations, resolution = protocol["iterations"], protocol["resolution"]
     model_flags, guidance_flags = [], []
-    for flag, value in _flag_pairs(extra or []):  # every variant flag takes one value
-        (guidance_flags if flag.startswith("--pipeline.model.guidance.") else model_flags).extend([flag, value])
+    for flag, *values in _flag_groups(extra or []):
+        (guidance_flags if flag.startswith("--pipeline.model.guidance.") else model_flags).extend([flag, *values])
     return ["sked", "--load-dir", str(base), "--sketches", str(paths["sketches"]), "--output-dir", str(output),
             "--experiment-name", scene, "--max-num-iterations", str(iterations), "--vis", "tensorboard",
             "--machine.device-type", "cpu", "--steps-per-save", str(iterations),
@@ -143,8 +143,15 @@ def edit_arguments(base: Path, paths: Dict[str, Path], scene: str, protocol: Dic
             "nerfstudio-data", "--data", str(paths["data"])]
 
 
-def _flag_pairs(arguments: List[str]) -> List[List[str]]:
-    return [arguments[i:i + 2] for i in range(0, len(arguments), 2)]
+def _flag_groups(arguments: List[str]) -> List[List[str]]:
+    """Each flag with the values after it (a tuple field takes several)."""
+    groups: List[List[str]] = []
+    for argument in arguments:
+        if argument.startswith("--") or not groups:
+            groups.append([argument])
+        else:
+            groups[-1].append(argument)
+    return groups
 
 
 def edit(base: Path, paths: Dict[str, Path], scene: str, protocol: Dict, output: Path, log: Path,
@@ -299,6 +306,11 @@ VARIANTS = {"default": [],
             # Splat bases: each training render at 2x its size, averaged down (the Gaussians' footprint between pixels).
             "supersample-1 (splat training renders at one sample a pixel: the previous splat default)": [
                 "--pipeline.model.splat-supersampling", "1"],
+            # Splat bases: the reference target at one sample a pixel beside the edit's supersampled render.
+            "point-target (reference target sampled at pixel centres, not as the render: the default before 2026-12-02)": [
+                "--pipeline.model.guidance.sampling", "pixel-centre"],
+            # The random views' field of view (the authors' 40-80 deg): narrower frames the part in more pixels.
+            "fov-20-40 (random views' field of view 20-40 deg)": ["--pipeline.datamanager.fov-range", "20", "40"],
             "supersample-2 (splat training renders at 2x, averaged down)": ["--pipeline.model.splat-supersampling", "2"],
             "seeds-1000 (1,000 seeds as wide as their spacing)": ["--pipeline.model.num-seeds", "1000"],
             "seeds-60 (60 seeds as wide as their spacing)": ["--pipeline.model.num-seeds", "60"],

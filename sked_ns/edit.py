@@ -158,15 +158,17 @@ class SkedEdit:
 
     # ---- the losses on images ----------------------------------------------------------------
     def guidance_losses(self, image: Tensor, random_camera: Dict,
-                        base_image: Union[None, Tensor, Callable[[], Tensor]], step: int) -> Dict[str, Tensor]:
+                        base_image: Union[None, Tensor, Callable[[], Tensor]], step: int,
+                        samples_per_side: int = 1) -> Dict[str, Tensor]:
         """The guidance's losses on the random view's image (1, 3, H, W). `base_image`: the base's render of the
-        same view, or a function rendering it, called only when the guidance needs it."""
+        same view, or a function rendering it, called only when the guidance needs it; `samples_per_side`: how the
+        image was sampled (RenderedView)."""
         assert self.guidance is not None, "guidance is prepared by the pipeline before training"
         if callable(base_image):
             base_image = base_image() if self.guidance.needs_base_render else None
         rendered = RenderedView(image=image, camera_to_world=random_camera["camera_to_world"],
                                 focal=random_camera["focal"], direction=random_camera["direction"],
-                                base_image=base_image)
+                                base_image=base_image, samples_per_side=samples_per_side)
         return self.guidance(rendered, step)
 
     def silhouette_losses(self, editable_opacity: Tensor,

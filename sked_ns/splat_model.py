@@ -535,7 +535,8 @@ class SkedSplatModel(SkedEdit, SplatfactoModel):
             image = view["rgb"].permute(2, 0, 1)[None]
             base_image = lambda: self._render_supersampled(  # noqa: E731
                 camera, background, base=True)["rgb"].permute(2, 0, 1)[None]
-            losses.update(self.guidance_losses(image, data["random_camera"], base_image, step))
+            losses.update(self.guidance_losses(image, data["random_camera"], base_image, step,
+                                               samples_per_side=max(int(config.splat_supersampling), 1)))
             if config.effective_lambda_sil > 0 and data.get("sketch_views"):
                 opacities, masks = [], []
                 for sketch_camera, mask in data["sketch_views"]:

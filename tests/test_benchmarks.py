@@ -177,6 +177,13 @@ def test_benchmark_command_lines_parse_as_ns_train_parses_them(tmp_path):
         tmp_path / "base", paths, "antenna", protocol, tmp_path / "out", extra=faster))
     grids = config.optimizers["hash_grids"]
     assert grids["optimizer"].lr == 0.15 and grids["scheduler"].lr_final == 0.015
+    # A tuple field's flag takes both its values; a guidance flag still follows its subcommand.
+    narrow = edit_quality.VARIANTS[edit_quality._variant("fov-20-40")]
+    point = edit_quality.VARIANTS[edit_quality._variant("point-target")]
+    config = tyro.cli(AnnotatedBaseConfigUnion, args=edit_quality.edit_arguments(
+        tmp_path / "base", paths, "vase", protocol, tmp_path / "out", extra=[*narrow, *point]))
+    assert tuple(config.pipeline.datamanager.fov_range) == (20.0, 40.0)
+    assert config.pipeline.model.guidance.sampling == "pixel-centre"
 
     arguments = gpu_check.edit_arguments(tmp_path / "base", tmp_path, tmp_path / "sd", "nerfacto", 7, "tiny", "cpu")
     config = tyro.cli(AnnotatedBaseConfigUnion, args=["sked", *arguments])

@@ -388,21 +388,24 @@ def test_area_downsample_is_the_block_mean():
 
 def test_supersampled_training_renders_keep_the_guidance_reference_sampled_as_the_edit(splat_scene, tmp_path):
     """At splat_supersampling 2 the random view is rendered at 2x and averaged down to the guidance's size, and so is the
-    base render the reference guidance uses outside the change: an unchanged edit (no seeds) matches it."""
+    base render the reference guidance uses outside the change: an unchanged edit (no seeds) matches it, and the guidance
+    is told how the image was sampled."""
     images = {}
     for factor in (1, 2):
         _, pipeline = edit_pipeline(splat_scene, tmp_path / str(factor), num_seeds=0, splat_supersampling=factor)
         model, seen = pipeline.model, {}
         original = model.guidance_losses
 
-        def capture(image, random_camera, base_image, step, original=original, seen=seen):
+        def capture(image, random_camera, base_image, step, samples_per_side=1, original=original, seen=seen):
             seen["image"], seen["base"] = image.detach(), (base_image() if callable(base_image) else base_image)
-            return original(image, random_camera, lambda: seen["base"], step)
+            seen["samples_per_side"] = samples_per_side
+            return original(image, random_camera, lambda: seen["base"], step, samples_per_side)
 
         model.guidance_losses = capture
         torch.manual_seed(0)
         sked_losses(pipeline)
         assert seen["image"].shape[-2:] == (24, 24)  # the guidance's resolution, whatever the sampling
         assert float((seen["image"] - seen["base"]).abs().max()) < 1e-5, factor  # 0.76 if the base were sampled once
+        assert seen["samples_per_side"] == factor  # so the reference target is sampled as the image was
         images[factor] = seen["image"]
     assert not torch.equal(images[1], images[2])  # 2x2 samples a pixel do change the image (its edges)

@@ -10,7 +10,7 @@ pulled towards the change without being pulled towards the analytic scene elsewh
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Dict, Optional, Type
+from typing import Dict, Literal, Optional, Type
 
 import torch
 from torch import Tensor
@@ -28,6 +28,10 @@ class ReferenceGuidanceConfig(GuidanceConfig):
     """Multiplier of the image MSE. At 1 the silhouette loss outweighs it and fills the sketch
     with a grey haze (demo scene, 100 iterations: a grey hat, PSNR outside 30.9 dB); at 30 the
     hat takes the target's shape and colour (PSNR outside 32.3 dB, IoS 0.89)."""
+    sampling: Literal["as-rendered", "pixel-centre"] = "as-rendered"
+    """as-rendered: the target is sampled as the edit's render was (a splat edit's supersampled pixels are
+    averages; so is the target's), as a camera integrates over each pixel; pixel-centre: one sample a pixel
+    whatever the render (the behaviour before 2026-12-02)."""
 
 
 class ReferenceGuidance(Guidance):
@@ -39,20 +43,28 @@ class ReferenceGuidance(Guidance):
         self.transform = context["dataparser_transform"]
         self.scene = reference_scene(self.config.target)
 
-    def target_image(self, view: RenderedView) -> tuple[Tensor, Tensor]:
-        """Target colour (1, 3, h, w) and where it differs from the base scene (1, 1, h, w)."""
+    def target_image(self, view: RenderedView) -> tuple[Tensor, Tensor, Tensor]:
+        """Sampled as the view was (samples_per_side^2 samples a pixel, averaged; a point-sampled target beside an
+        area-averaged render asks a part thinner than a pixel to fill whole pixels or none), each (1, C, h, w):
+        the target's colour, its colour summed over only the samples where it differs from the base scene, and the
+        share of those samples."""
         _, _, height, width = view.image.shape
+        factor = max(int(view.samples_per_side), 1) if self.config.sampling == "as-rendered" else 1
         pose = self.transform.invert(view.camera_to_world)
         # Focal lengths are in pixels, so the frame's scale does not change them.
-        target = self.scene.render_target(pose, view.focal, width, height)
-        base = self.scene.render_base(pose, view.focal, width, height)
-        changed = (target["rgb"] - base["rgb"]).abs().amax(dim=-1) > 1e-3
-        return target["rgb"].permute(2, 0, 1)[None].to(view.image), changed[None, None].to(view.image)
+        size = (view.focal * factor, width * factor, height * factor)
+        target = self.scene.render_target(pose, *size)["rgb"]
+        base = self.scene.render_base(pose, *size)["rgb"]
+        changed = ((target - base).abs().amax(dim=-1, keepdim=True) > 1e-3).float()
+        fine = torch.cat([target, target * changed, changed], dim=-1).permute(2, 0, 1)[None]
+        pooled = (torch.nn.functional.avg_pool2d(fine, factor) if factor > 1 else fine).to(view.image)
+        return pooled[:, :3], pooled[:, 3:6], pooled[:, 6:]
 
     def __call__(self, view: RenderedView, step: int) -> Dict[str, Tensor]:
-        target, changed = self.target_image(view)
+        target, changed_colour, changed = self.target_image(view)
         if view.base_image is not None:
-            target = torch.where(changed.bool(), target, view.base_image.to(target))
+            # The target over each pixel's changed samples, the frozen base's render over the rest.
+            target = changed_colour + (1 - changed) * view.base_image.to(target)
         return {"reference_loss": self.config.weight * (view.image - target).pow(2).mean()}
 
 

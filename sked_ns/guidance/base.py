@@ -24,6 +24,9 @@ class RenderedView:
     """front / side / back / overhead / bottom, for directional prompts."""
     base_image: Optional[Tensor] = None
     """The frozen base rendered from the same camera, for guidance that asks for it."""
+    samples_per_side: int = 1
+    """Each pixel is the mean of samples_per_side^2 samples (splat supersampling): an image compared with it must
+    be sampled the same way."""
 
 
 @dataclass
