@@ -311,6 +311,8 @@ VARIANTS = {"default": [],
                 "--pipeline.model.guidance.sampling", "pixel-centre"],
             # The random views' field of view (the authors' 40-80 deg): narrower frames the part in more pixels.
             "fov-20-40 (random views' field of view 20-40 deg)": ["--pipeline.datamanager.fov-range", "20", "40"],
+            "authors-fov (random views in the authors' 40-80 deg field of view whatever the edit's size: the default "
+            "before the views framed the edit box)": ["--pipeline.datamanager.edit-fill", "0"],
             "supersample-2 (splat training renders at 2x, averaged down)": ["--pipeline.model.splat-supersampling", "2"],
             "seeds-1000 (1,000 seeds as wide as their spacing)": ["--pipeline.model.num-seeds", "1000"],
             "seeds-60 (60 seeds as wide as their spacing)": ["--pipeline.model.num-seeds", "60"],

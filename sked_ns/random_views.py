@@ -7,6 +7,11 @@ polar angle uniform in 0-150 deg from straight above (elevation 90 down to -60, 
 the angle, not over the sphere: a fifth of the views look from within 30 deg of the top,
 the "overhead" ones) and field of view 40-80 deg. "Front" for directional prompts is the
 first sketch view's side of the object (users sketch from where they look).
+
+The authors edit whole objects; a part small beside the scene (a flower in a vase) spans a few
+pixels of such a view (2-3 px of a 24 px render), where no guidance can shape it. So the field
+of view range is narrowed, in proportion, until the edit box spans at least `edit_fill` of a view
+at the range's middle (a box already that large keeps the authors' range).
 """
 
 from __future__ import annotations
@@ -42,6 +47,18 @@ class RandomViewSampler:
     fov_range_deg: Tuple[float, float] = FOV_RANGE_DEG
     jitter: float = 0.0
     """Look-at jitter, as a fraction of the radius."""
+    edit_radius: float = 0.0
+    """Radius of the edit box's bounding sphere (0: the field of view is not fitted to it)."""
+    edit_fill: float = 0.0
+    """Least share of a view's width the edit box spans at the field of view range's middle (0: the range as given)."""
+
+    @property
+    def fov_scale(self) -> float:
+        """How much the field of view range is narrowed (1: not at all) to frame the edit box."""
+        if self.edit_fill <= 0 or self.edit_radius <= 0:
+            return 1.0
+        span = 2.0 * math.degrees(math.asin(min(self.edit_radius / self.radius, 1.0)))  # the box's angular diameter
+        return min(1.0, span / (self.edit_fill * 0.5 * sum(self.fov_range_deg)))
 
     @classmethod
     def around_sketches(cls, centre: np.ndarray, camera_to_worlds: Sequence[np.ndarray], **kwargs) -> "RandomViewSampler":
@@ -58,7 +75,7 @@ class RandomViewSampler:
         radius = self.radius * lerp(self.radius_scale_range, u[0])
         elevation = lerp(self.elevation_range_deg, u[1])
         azimuth = lerp(self.azimuth_range_deg, u[2])
-        fov = lerp(self.fov_range_deg, u[3])
+        fov = lerp(self.fov_range_deg, u[3]) * self.fov_scale
         position = self.centre + orbit_position(azimuth + self.front_azimuth_deg, elevation, radius)
         target = self.centre + self.jitter * self.radius * (u[4:7] - 0.5)  # a point in a cube, not on its diagonal
         return look_at(position, target), fov, view_direction(azimuth, elevation)

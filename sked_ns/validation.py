@@ -127,6 +127,10 @@ def datamanager_problems(datamanager) -> List[str]:
     check_range("azimuth_range", -360.0, 360.0, "[-360, 360] degrees")
     check_range("fov_range", 1e-3, 179.0, "(0, 179] degrees")
     check_range("radius_scale_range", 1e-3, math.inf, "(0, inf) (times the sketch cameras' distance)")
+    fill = getattr(datamanager, "edit_fill", 0.0)
+    if not (is_number(fill) and 0.0 <= fill <= 1.0):
+        problems.append(f"{flag('edit_fill', DATAMANAGER_FLAGS)} {fill!r}: must be a share of the view in [0, 1] "
+                        "(0 keeps --pipeline.datamanager.fov-range as given).")
     rays = datamanager.train_num_rays_per_batch
     if not (_is_whole(rays) and rays > 0):
         problems.append(f"{flag('train_num_rays_per_batch', DATAMANAGER_FLAGS)} {rays!r}: must be a whole number "
@@ -197,6 +201,9 @@ def check_options(options, datamanager=None) -> None:
     sked_datamanager = hasattr(datamanager, "fov_range")  # nerfstudio's own datamanagers have no random views
     refuse(option_problems(options) + (datamanager_problems(datamanager) if sked_datamanager else []))
     warn_unusual_options(options)
+    if sked_datamanager and getattr(datamanager, "edit_fill", 0.0) > 0.9:
+        warn(f"{flag('edit_fill', DATAMANAGER_FLAGS)} {datamanager.edit_fill:g}: the edit box fills nearly every random "
+             "view, so the guidance sees little of the scene around the part (0.7 frames it with context).")
 
 
 def check_sketch_pixels(sketch_set, silhouette_resolution: int) -> List[int]:
