@@ -83,3 +83,43 @@ def test_the_sampler_is_deterministic_given_the_generator():
     for (pose_a, fov_a, dir_a), (pose_b, fov_b, dir_b) in zip(first, again):
         np.testing.assert_array_equal(pose_a, pose_b)
         assert fov_a == fov_b and dir_a == dir_b
+
+
+def _box_span_deg(sampler):
+    """The edit box's bounding sphere seen from the orbit's distance: its angular diameter."""
+    return 2 * math.degrees(math.asin(sampler.edit_radius / sampler.radius))
+
+
+def test_a_small_edit_is_framed_at_edit_fill_of_the_range_middle():
+    """A part small beside the scene (bounding sphere 0.2 at distance 2: 11.5 deg) would span a fifth of a 60 deg
+    view; the range is narrowed in proportion until it spans edit_fill there."""
+    sampler = RandomViewSampler(centre=CENTRE, radius=2.0, edit_radius=0.2, edit_fill=0.7)
+    low, high = (sampler.fov_scale * value for value in sampler.fov_range_deg)
+    assert high / low == pytest.approx(2.0)  # the authors' proportions kept
+    assert _box_span_deg(sampler) / ((low + high) / 2) == pytest.approx(0.7)
+    fovs = [fov for _, fov, _ in _samples(sampler, 400)]
+    assert low - 1e-9 <= min(fovs) and max(fovs) <= high + 1e-9
+    assert min(fovs) < low + 2 and max(fovs) > high - 2  # the whole narrowed range is drawn
+
+
+@pytest.mark.parametrize("edit_radius, edit_fill", [(1.5, 0.7), (0.2, 0.0), (0.0, 0.7), (5.0, 1.0)])
+def test_a_large_edit_or_no_framing_keeps_the_authors_range(edit_radius, edit_fill):
+    """Never wider than the authors' range: an edit box that already spans edit_fill (or a camera inside its
+    bounding sphere) keeps 40-80 deg, and so does edit_fill 0 or an unknown box."""
+    sampler = RandomViewSampler(centre=CENTRE, radius=2.0, edit_radius=edit_radius, edit_fill=edit_fill)
+    assert sampler.fov_scale == 1.0
+    fovs = [fov for _, fov, _ in _samples(sampler, 200)]
+    assert 40.0 <= min(fovs) and max(fovs) <= 80.0 and max(fovs) - min(fovs) > 35
+
+
+def test_edit_fill_is_validated_and_a_frame_filled_by_the_edit_warns():
+    from sked_ns.errors import SkedUserError
+    from sked_ns.options import SkedOptions
+    from sked_ns.validation import check_options
+
+    assert SkedDataManagerConfig().edit_fill == 0.7
+    for bad in (-0.1, 1.5, float("nan")):
+        with pytest.raises((SkedUserError, ValueError), match="edit-fill"):
+            check_options(SkedOptions(), SkedDataManagerConfig(edit_fill=bad))
+    with pytest.warns(UserWarning, match="edit-fill"):
+        check_options(SkedOptions(), SkedDataManagerConfig(edit_fill=0.95))

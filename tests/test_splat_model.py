@@ -9,6 +9,7 @@ from __future__ import annotations
 import copy
 import math
 
+import numpy as np
 import pytest
 import torch
 
@@ -409,3 +410,24 @@ def test_supersampled_training_renders_keep_the_guidance_reference_sampled_as_th
         assert seen["samples_per_side"] == factor  # so the reference target is sampled as the image was
         images[factor] = seen["image"]
     assert not torch.equal(images[1], images[2])  # 2x2 samples a pixel do change the image (its edges)
+
+
+def test_random_views_frame_the_edit_box_the_pipeline_computed(splat_scene, tmp_path):
+    """`ns-train sked` hands the datamanager the edit box: its bounding sphere sizes the random views' field of view,
+    and each view's focal length says the narrowed one (edit-fill 0: the authors' 40-80 deg)."""
+    from sked_ns.random_views import focal_from_fov
+
+    for fill in (0.0, 0.7):
+        config, pipeline = edit_pipeline(splat_scene, tmp_path / str(fill), num_seeds=0)
+        datamanager = pipeline.datamanager
+        datamanager.config.edit_fill = fill
+        datamanager.attach_sketches(pipeline.model.sketch_set, pipeline.model.edit_box, 16, 24)
+        sampler = datamanager.random_views
+        assert sampler.edit_radius == pytest.approx(0.5 * float(np.linalg.norm(pipeline.model.edit_box.size)))
+        low, high = (sampler.fov_scale * value for value in (40.0, 80.0))
+        focals = [datamanager.next_sked(step)["random_camera"]["focal"] for step in range(20)]
+        assert all(focal_from_fov(high, 24) - 1e-6 <= focal <= focal_from_fov(low, 24) + 1e-6 for focal in focals)
+        if fill == 0.0:
+            assert sampler.fov_scale == 1.0
+        else:
+            assert sampler.fov_scale < 1.0  # the demo part is small beside its scene
