@@ -310,7 +310,8 @@ VARIANTS = {"default": [],
             "point-target (reference target sampled at pixel centres, not as the render: the default before 2026-12-02)": [
                 "--pipeline.model.guidance.sampling", "pixel-centre"],
             # The random views' field of view (the authors' 40-80 deg): narrower frames the part in more pixels.
-            "fov-20-40 (random views' field of view 20-40 deg)": ["--pipeline.datamanager.fov-range", "20", "40"],
+            "fov-20-40 (random views' field of view 20-40 deg, not fitted to the edit box)": [
+                "--pipeline.datamanager.fov-range", "20", "40", "--pipeline.datamanager.edit-fill", "0"],
             "authors-fov (random views in the authors' 40-80 deg field of view whatever the edit's size: the default "
             "before the views framed the edit box)": ["--pipeline.datamanager.edit-fill", "0"],
             "supersample-2 (splat training renders at 2x, averaged down)": ["--pipeline.model.splat-supersampling", "2"],

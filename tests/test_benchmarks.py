@@ -182,7 +182,7 @@ def test_benchmark_command_lines_parse_as_ns_train_parses_them(tmp_path):
     point = edit_quality.VARIANTS[edit_quality._variant("point-target")]
     config = tyro.cli(AnnotatedBaseConfigUnion, args=edit_quality.edit_arguments(
         tmp_path / "base", paths, "vase", protocol, tmp_path / "out", extra=[*narrow, *point]))
-    assert tuple(config.pipeline.datamanager.fov_range) == (20.0, 40.0)
+    assert tuple(config.pipeline.datamanager.fov_range) == (20.0, 40.0) and config.pipeline.datamanager.edit_fill == 0
     assert config.pipeline.model.guidance.sampling == "pixel-centre"
 
     arguments = gpu_check.edit_arguments(tmp_path / "base", tmp_path, tmp_path / "sd", "nerfacto", 7, "tiny", "cpu")
