@@ -9,7 +9,7 @@ import torch
 from sked_ns.demo import scene as demo_scene
 from sked_ns.edit_box import compute_edit_box
 from sked_ns.edit_run import edit_config, run_edit
-from sked_ns.metrics import intersection_over_sketch, psnr_outside
+from sked_ns.metrics import psnr_outside
 from sked_ns.render import load_pipeline, render_at, resized_mask
 from sked_ns.sketches import load_sketch_set, save_sketch_set
 
@@ -35,24 +35,33 @@ def test_edit_box_holds_the_whole_edit_and_the_edit_is_new_mass(name):
 
 @pytest.mark.parametrize("name", ["handle", "antenna"])
 def test_reference_edit_reaches_each_target(scene, tmp_path, name):
-    save_sketch_set(demo_scene.SCENES[name].sketch_set(64), tmp_path / "sketches")
+    edit_scene = demo_scene.SCENES[name]
+    save_sketch_set(edit_scene.sketch_set(64), tmp_path / "sketches")
     config = edit_config(scene["base"], scene["data"], tmp_path / "sketches", tmp_path / "out", iterations=60,
                          guidance_resolution=32, silhouette_resolution=32)
     config.pipeline.model.guidance.target = name
     trainer = run_edit(config)
     base = load_pipeline(scene["base"])
     sketches = load_sketch_set(tmp_path / "sketches").in_model_frame(trainer.pipeline.datamanager.dataparser_transform)
-    for view in sketches.views:
-        mask = resized_mask(view, 64)
+    for view, data_view in zip(sketches.views, edit_scene.sketch_set(64).views):
+        mask = resized_mask(view, 64).bool()
+        # Judged against the exact target, not the whole sketch: a sketch is the part's outline dilated by a
+        # pixel (a thin ring or rod: 40-50% margin), which a correct edit leaves empty. A haze filling the whole
+        # sketch scored IoS above the exact target's (antenna 0.83 vs 0.53) and passed "IoS > 0.75".
+        hits = lambda sdf: demo_scene.render(sdf, data_view.camera_to_world, data_view.fl_x, 64, 64,
+                                             edit_sdf=edit_scene.edit_sdf)["hit"].bool()
+        target, sphere = hits(edit_scene.target_sdf), hits(demo_scene.sphere_sdf)
+        new_part, margin = mask & target & ~sphere, mask & ~target
         before, after = render_at(base.model, view, 64), render_at(trainer.pipeline.model, view, 64)
-        ios_before = intersection_over_sketch(before["accumulation"], mask)
-        ios_after = intersection_over_sketch(after["accumulation"], mask)
-        # Seeded as ns-train seeds, measured: handle 0.69 -> 0.91, 0.36 -> 0.85, 0.61 -> 0.93; antenna 0.10 -> 0.85,
-        # 0.23 -> 0.81. (Handle's first view is mostly the sphere already, so "+0.2" had no margin there.)
-        assert ios_after > 0.75 and ios_after > ios_before + 0.15
-        # Measured 40.0 / 36.0 / 34.7 dB on handle's views, 36.0 / 36.0 on antenna's (23-33 dB before the
-        # base-density preservation target and the photo anchor).
-        assert psnr_outside(after["rgb"], before["rgb"], mask) > 30.0
+        accumulation_before, accumulation_after = (r["accumulation"].reshape(mask.shape) for r in (before, after))
+        # Measured (handle's three views, antenna's two): the new part 0.87 / 0.90 / 0.94, 0.95 / 0.89 filled
+        # (0.03-0.18 before); the margin 0.23 / 0.24 / 0.38, 0.48 / 0.25 (random views in the authors' 40-80 deg,
+        # edit-fill 0: antenna 0.62-0.64 / 0.40 on its first / second view, the haze this catches: it fails).
+        assert accumulation_after[new_part].mean() > 0.8
+        assert accumulation_after[new_part].mean() > accumulation_before[new_part].mean() + 0.5
+        assert accumulation_after[margin].mean() < 0.6
+        # Measured 55.8 / 45.3 / 42.2 dB on handle's views, 41.7 / 38.6 on antenna's.
+        assert psnr_outside(after["rgb"], before["rgb"], mask.float()) > 30.0
 
 
 @pytest.mark.parametrize("name", ["vase", "crate"])
