@@ -15,6 +15,8 @@ from dataclasses import fields, is_dataclass
 from pathlib import Path, PurePath
 from typing import Dict, Iterator, Tuple
 
+from nerfstudio.utils.rich_utils import CONSOLE
+
 from sked_ns.errors import SkedUserError
 
 RESUME_SETTABLE = (
@@ -28,6 +30,12 @@ DATA_SETTINGS = ("data", "pipeline.datamanager.data", "pipeline.datamanager.data
 """Typed data replace the saved ones whole, as for a new edit (nerfstudio prefers the --data alias to the dataparser's)."""
 RUN_FIELDS = ("timestamp", "load_dir", "load_step", "load_checkpoint", "load_config", "progressive")
 """How this command was started, not part of the edit: this run's own, never compared with the saved edit's."""
+SETTINGS_SINCE = {
+    "pipeline.datamanager.edit_fill": (0.0, "428301a"),
+    "pipeline.model.guidance.sampling": ("pixel-centre", "c291766"),
+}
+"""Settings added after edits were saved, each with the value that continues such an edit as it ran and the commit
+that added it: a config.yml without the setting would otherwise read the new default (its class attribute)."""
 ALIASES = {"sketches": "pipeline.model.sketches", "prompt": "pipeline.model.prompt"}
 """Top-level flags that stand for a model setting."""
 MISSING = object()
@@ -158,8 +166,24 @@ def refused_changes(typed: Dict[str, object], config, saved) -> list:
     return changes
 
 
+def settings_saved_before(saved) -> Dict[str, object]:
+    """Fill in (in place) the SETTINGS_SINCE that `saved`, read from an older config.yml, lacks; returns them."""
+    filled = {}
+    for path, (value, _) in SETTINGS_SINCE.items():
+        *parents, name = path.split(".")
+        node = get_setting(saved, ".".join(parents))
+        # Loaded from yaml, a config's __dict__ holds what the file had; a field of another class (SD guidance) is not ours.
+        if is_dataclass(node) and name in {item.name for item in fields(node)} and name not in vars(node):
+            setattr(node, name, value)
+            filled[path] = value
+    return filled
+
+
 def resumed_config(config, saved, default, run_dir: Path, argv=None) -> None:
     """Make `config` the `saved` edit's config (in place), with the settable settings typed on this command line."""
+    for path, value in settings_saved_before(saved).items():
+        CONSOLE.print(f"{run_dir / 'config.yml'} predates {flag(path)} ({SETTINGS_SINCE[path][1]}): continuing with "
+              f"{_show(value)}, as it ran")
     typed = typed_settings(config, default, argv)
     changes = refused_changes(typed, config, saved)
     if changes:

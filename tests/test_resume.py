@@ -98,6 +98,24 @@ def test_resume_refuses_what_would_change_the_edit():
     assert "guidance-scale" not in str(refused.value)
 
 
+def test_an_edit_saved_before_a_setting_existed_continues_as_it_ran():
+    text = yaml.dump(saved_edit())
+    for line in ("edit_fill: 0.7", "sampling: as-rendered"):
+        assert text.count(line) == 1, line
+    older = yaml.load(text.replace("edit_fill: 0.7", "").replace("sampling: as-rendered", ""), Loader=yaml.Loader)
+    # Read back without them, the class defaults (this version's) would show through.
+    assert older.pipeline.datamanager.edit_fill == 0.7 and older.pipeline.model.guidance.sampling == "as-rendered"
+    config = resume(resume_config(Path("/run")), older)
+    assert config.pipeline.datamanager.edit_fill == 0.0  # the authors' 40-80 deg views it was trained with
+    assert config.pipeline.model.guidance.sampling == "pixel-centre"
+    # Typing the value it ran with is no change; an edit saved with the settings keeps its own.
+    typed = resume_config(Path("/run"))
+    typed.pipeline.datamanager.edit_fill = 0.0
+    assert resume(typed, yaml.load(text.replace("edit_fill: 0.7", ""), Loader=yaml.Loader)).pipeline.datamanager.edit_fill == 0.0
+    current = resume(resume_config(Path("/run")), saved_edit())
+    assert (current.pipeline.datamanager.edit_fill, current.pipeline.model.guidance.sampling) == (0.7, "as-rendered")
+
+
 def test_a_flag_typed_at_its_default_value_counts_on_the_ns_train_command_line():
     config = resume_config(Path("/run"))  # beta is the preset's 0.025 whether typed or not
     resume(copy.deepcopy(config), saved_edit(), argv=["pytest"])  # not ns-train: the saved 0.05 is kept
