@@ -183,7 +183,7 @@ def resumed_config(config, saved, default, run_dir: Path, argv=None) -> None:
     """Make `config` the `saved` edit's config (in place), with the settable settings typed on this command line."""
     for path, value in settings_saved_before(saved).items():
         CONSOLE.print(f"{run_dir / 'config.yml'} predates {flag(path)} ({SETTINGS_SINCE[path][1]}): continuing with "
-              f"{_show(value)}, as it ran")
+                      f"{_show(value)}, as it ran")
     typed = typed_settings(config, default, argv)
     changes = refused_changes(typed, config, saved)
     if changes:
