@@ -142,6 +142,26 @@ def test_bare_sd_step_runs_under_the_edits_autocast(tmp_path):
     assert image.grad is not None and state() == (False, torch.bfloat16), "the encoder's backward ran, and autocast is off again"
 
 
+def test_a_base_on_a_white_backdrop_trains_with_a_white_background(tmp_path):
+    """The demo sphere's photos show nothing but the object on white: its base is told so (nerfacto's default
+    last_sample fills the empty space with white mass); the held-out scenes, with a table to the horizon, keep it."""
+    import tyro
+    from nerfstudio.configs.method_configs import AnnotatedBaseConfigUnion
+
+    import edit_quality
+
+    def base_config(scene):
+        return tyro.cli(AnnotatedBaseConfigUnion, args=edit_quality.base_arguments(
+            scene, tmp_path / "data", tmp_path / "runs", edit_quality.BASE_ITERATIONS))
+
+    for scene in ("hat", "antenna"):
+        config = base_config(scene)
+        assert config.pipeline.model.background_color == "white", scene
+        assert config.pipeline.datamanager.train_num_rays_per_batch == edit_quality.BASE_RAYS
+    for scene in ("vase", "marker", "lawn"):
+        assert base_config(scene).pipeline.model.background_color == "last_sample", scene
+
+
 def test_benchmark_command_lines_parse_as_ns_train_parses_them(tmp_path):
     """The benchmarks type `ns-train sked` as a user does: nerfstudio's own CLI must read what they mean."""
     import tyro
