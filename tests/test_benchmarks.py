@@ -142,9 +142,10 @@ def test_bare_sd_step_runs_under_the_edits_autocast(tmp_path):
     assert image.grad is not None and state() == (False, torch.bfloat16), "the encoder's backward ran, and autocast is off again"
 
 
-def test_a_base_on_a_white_backdrop_trains_with_a_white_background(tmp_path):
+def test_a_base_on_a_white_backdrop_trains_with_a_white_background(tmp_path, monkeypatch):
     """The demo sphere's photos show nothing but the object on white: its base is told so (nerfacto's default
-    last_sample fills the empty space with white mass); the held-out scenes, with a table to the horizon, keep it."""
+    last_sample fills the empty space with white mass); the other scenes keep the default. A base trained with the
+    other background is never reused."""
     import tyro
     from nerfstudio.configs.method_configs import AnnotatedBaseConfigUnion
 
@@ -160,6 +161,14 @@ def test_a_base_on_a_white_backdrop_trains_with_a_white_background(tmp_path):
         assert config.pipeline.datamanager.train_num_rays_per_batch == edit_quality.BASE_RAYS
     for scene in ("vase", "marker", "lawn"):
         assert base_config(scene).pipeline.model.background_color == "last_sample", scene
+    # An earlier last_sample base in the same work folder is not taken for the hat's white one.
+    (tmp_path / "runs" / "base" / "nerfacto" / "base" / "nerfstudio_models").mkdir(parents=True)
+    trained = []
+    monkeypatch.setattr(edit_quality, "run", lambda command, log: trained.append(command))
+    run_dir = edit_quality.train_base("hat", tmp_path / "data", tmp_path / "runs", 400, tmp_path / "base.log")
+    assert len(trained) == 1 and "white" in trained[0] and run_dir.name == "base-white"
+    assert edit_quality.train_base("vase", tmp_path / "data", tmp_path / "runs", 400, tmp_path / "b.log").name == "base"
+    assert len(trained) == 1, "the vase's last_sample base is reused"
 
 
 def test_benchmark_command_lines_parse_as_ns_train_parses_them(tmp_path):
