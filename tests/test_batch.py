@@ -16,6 +16,7 @@ import signal
 import socket
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -341,6 +342,22 @@ def test_the_report_has_a_row_and_a_sheet_row_per_job(fake_scene, tmp_path):
     # The done job's row holds its two sketch-view strips (red), the failed one's only its label.
     assert sheet.getpixel((sheet.width - 1, ROW_HEIGHT // 2)) == (255, 0, 0)
     assert sheet.getpixel((sheet.width - 1, ROW_HEIGHT + ROW_HEIGHT // 2)) != (255, 0, 0)
+
+
+def test_reports_are_written_one_at_a_time(fake_scene, tmp_path):
+    """The Slurm report job and a `sked-batch report` at once: the second waits, the three files are one table's."""
+    plan = load_plan(write_plan(tmp_path, fake_scene, [{"name": "e"}]))
+    other = holding(plan.output / "results.csv", WRITE)  # another report being written
+    second = threading.Thread(target=write_report, args=(plan,))
+    second.start()
+    second.join(timeout=10)
+    try:
+        assert second.is_alive() and not (plan.output / "results.csv").exists(), "written beside another report"
+    finally:
+        killed(other)
+    second.join()
+    assert [p.name for p in sorted(plan.output.iterdir()) if p.is_file()] == ["contact_sheet.png", "results.csv",
+                                                                            "results.json"]
 
 
 # ---- real edits ---------------------------------------------------------------------------------
