@@ -317,6 +317,22 @@ def test_the_sbatch_script_maps_array_tasks_to_jobs(fake_scene, tmp_path):
     assert "--gpus" not in sbatch_script(plan, plan.jobs, slurm_options(plan, {"gpus": 0}))
 
 
+def test_two_submissions_in_one_second_keep_their_own_scripts(fake_scene, tmp_path, monkeypatch):
+    import sked_ns.batch.runners as runners
+
+    plan = load_plan(write_plan(tmp_path, fake_scene, [{"name": "e", "seeds": [0, 1]}]))
+    arrays = iter(["101", "102"])
+    monkeypatch.setattr(runners, "sbatch", lambda arguments: next(arrays))
+    monkeypatch.setattr(runners.time, "strftime", lambda form, *args: "20260101-000000")  # the same second
+    options = slurm_options(plan, {"gpus": 0})
+    options.report_job = False
+    for job in plan.jobs:  # scripts that launch a submission per job
+        runners.submit_slurm(plan, [job], options)
+    for job in plan.jobs:
+        script = Path(state.read_marker(job, "submitted")["script"]).read_text()
+        assert f"JOBS=({job.name})" in script, f"{job.name}'s array runs another job"
+
+
 def test_the_report_has_a_row_and_a_sheet_row_per_job(fake_scene, tmp_path):
     plan = load_plan(write_plan(tmp_path, fake_scene, [{"name": "e", "prompt": "a hat", "seeds": [0, 1]}]))
     done, failed = plan.jobs
