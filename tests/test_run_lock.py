@@ -99,6 +99,30 @@ def test_a_second_edit_into_a_run_folder_being_written_is_refused(scene, tmp_pat
         run_lock.release(run_dir)
 
 
+def test_resuming_into_a_run_folder_being_written_is_refused(tmp_path):
+    """`ns-train sked --load-dir RUN --timestamp <its own>` (what sked-batch resumes with) while RUN still runs."""
+    import yaml
+    from test_resume import fake_run, saved_edit
+
+    from sked_ns.edit_run import resume_config
+
+    saved = saved_edit()
+    saved.output_dir, saved.experiment_name, saved.timestamp, saved.max_num_iterations = tmp_path, "scene", "run", 60
+    run = fake_run(tmp_path / "scene" / "sked" / "run", [10])
+    (run / "config.yml").write_text(yaml.dump(saved))
+    before = (run / "config.yml").read_bytes()
+    (tmp_path / "data").mkdir()
+    config = resume_config(run, tmp_path)
+    config.timestamp, config.data = "run", tmp_path / "data"
+    writing = holding(run)
+    try:
+        with pytest.raises(run_lock.WriterBusy, match=rf"{run}: another process is writing to it \(pid {writing.pid} "):
+            config.save_config()
+    finally:
+        killed(writing)
+    assert (run / "config.yml").read_bytes() == before
+
+
 def test_a_lock_is_the_live_process_s_and_ends_with_it(tmp_path):
     folder = tmp_path / "run"
     child = holding(folder)
