@@ -101,7 +101,8 @@ def describe(record: dict) -> str:
     return text + (f": {record['command']}" if record.get("command") else "")
 
 
-def _is_us(record: dict) -> bool:
+def is_this_process(record: dict) -> bool:
+    """The record names the process reading it."""
     return record.get("pid") == os.getpid() and record.get("host") == socket.gethostname()
 
 
@@ -150,7 +151,7 @@ def _lock(fd: int, wait: bool) -> None:
     # The file system refuses flock: the record is the lock (the module's docstring).
     record = _read(fd)
     live = alive(record) if record.get("pid") else False
-    if live is not False and not _is_us(record):
+    if live is not False and not is_this_process(record):
         raise _Taken(record, unsure=live is None)
 
 
@@ -180,7 +181,7 @@ def _release(fd: int, remove: Optional[Path] = None) -> None:
 
 
 def _busy(target: Path, lock: Path, taken: _Taken, hint: str) -> WriterBusy:
-    who = "another task of this process" if _is_us(taken.record) else "another process"
+    who = "another task of this process" if is_this_process(taken.record) else "another process"
     message = f"{target}: {who} is writing to it ({describe(taken.record)}). {hint}"
     if taken.unsure:
         message += f" If that process has ended, remove {lock}."
@@ -262,7 +263,7 @@ def write_failure(path: Path, error: BaseException, what: str) -> SkedUserError:
     for folder, fd in _held.items():
         if folder in _key(path).parents:
             record = _read(fd)
-            if record.get("pid") and not _is_us(record):
+            if record.get("pid") and not is_this_process(record):
                 return SkedUserError(
                     f"{path}: cannot write the {what} ({error}): another process is writing to {folder} too "
                     f"({describe(record)}; the file system did not keep it out). The run folder now holds files "

@@ -20,7 +20,7 @@ from typing import Dict, List, Optional
 from sked_ns.batch.plan import Job
 from sked_ns.batch.state import (finished, job_record, marker, owner_alive, progress, read_marker, remove_marker,
                                  slurm_states, this_owner, write_marker, writer)
-from sked_ns.run_lock import WriterBusy, describe, process_start, writing
+from sked_ns.run_lock import WriterBusy, describe, is_this_process, process_start, writing
 
 
 def now() -> str:
@@ -43,7 +43,7 @@ def claim(job: Job) -> Optional[str]:
         if not same and owner_alive(owner, slurm_states(ids) if ids else {}):
             return f"already running ({running.get('owner')})"
     working = writer(job, running)
-    if working is not None and working.get("pid") != os.getpid():  # never a second writer: it is waited for
+    if working is not None and not is_this_process(working):  # never a second writer: it is waited for
         return f"already running: {describe(working)} writes {job.run_dir}"
     if read_marker(job, "done") is not None:
         return "already done"
