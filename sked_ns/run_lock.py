@@ -92,7 +92,7 @@ def alive(record: dict) -> Optional[bool]:
 
 
 def describe(record: dict) -> str:
-    """`pid 123 on host since 2026-...: ns-train sked ...`, as far as the record tells."""
+    """`pid 123 on host since <time>: ns-train sked ...`, as far as the record tells."""
     if not record.get("pid"):
         return "its record is not written yet"
     text = f"pid {record['pid']} on {record.get('host', '?')}"
