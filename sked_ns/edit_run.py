@@ -8,6 +8,7 @@ from typing import Optional
 
 from sked_ns.config import sked_method
 from sked_ns.guidance import guidance_config
+from sked_ns.run_lock import release
 from sked_ns.trainer import SkedTrainerConfig
 
 
@@ -69,8 +70,11 @@ def run_edit(config: SkedTrainerConfig):
     np.random.seed(config.machine.seed)
     torch.manual_seed(config.machine.seed)
     config.set_timestamp()
-    config.save_config()
-    trainer = config.setup(local_rank=0, world_size=1)
-    trainer.setup()
-    trainer.train()
+    try:
+        config.save_config()  # takes the run folder for this edit (ns-train holds it until the process ends)
+        trainer = config.setup(local_rank=0, world_size=1)
+        trainer.setup()
+        trainer.train()
+    finally:
+        release(config.get_base_dir())  # this process goes on: the next edit (or a resume) may write there
     return trainer

@@ -14,6 +14,7 @@ the intended result inside and outside the changed region. Writes JSON and a con
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 from pathlib import Path
 from typing import Dict, Optional
@@ -21,6 +22,7 @@ from typing import Dict, Optional
 import numpy as np
 import torch
 
+from sked_ns.atomic import publish_atomically, write_text_atomically
 from sked_ns.base_scene import resolve_base
 from sked_ns.errors import SkedFileNotFoundError, SkedUserError, check_writable_folder
 from sked_ns import novel_views
@@ -28,6 +30,7 @@ from sked_ns.metrics import intersection_over_sketch, psnr_outside, ssim_outside
 from sked_ns.clip_score import DEFAULT_CLIP, ClipScorer, orbit_cameras
 from sked_ns.random_views import focal_from_fov
 from sked_ns.render import load_pipeline, render_at, render_base_at, render_camera, resized_mask
+from sked_ns.run_lock import writing
 from sked_ns.cameras import cameras_of
 from sked_ns.sketches import load_sketch_set
 
@@ -220,6 +223,19 @@ def output_paths(run: Path, output: Optional[Path], sheet: Optional[Path], overw
     return output, sheet
 
 
+def write_outputs(outcome: dict, output: Path, sheet: Path) -> None:
+    """The contact sheet, then the metrics JSON (whose presence says the evaluation is whole), each written beside
+    and renamed into place, so a kill leaves the earlier result or none."""
+    import cv2
+
+    partial = sheet.with_name(f".{sheet.stem}.partial{sheet.suffix}")  # the suffix tells OpenCV the format
+    if not cv2.imwrite(str(partial), (outcome["sheet"].numpy().clip(0, 1) * 255).round().astype(np.uint8)[..., ::-1]):
+        raise SkedUserError(f"--sheet {sheet}: could not write the contact sheet (OpenCV needs a writable path "
+                            "ending in .png).")
+    publish_atomically(partial, sheet)
+    write_text_atomically(output, json.dumps(outcome["metrics"], indent=2))
+
+
 def entrypoint() -> None:
     from sked_ns.compat import quiet_third_party_warnings
 
@@ -252,17 +268,15 @@ def entrypoint() -> None:
     output, sheet = output_paths(run, args.output, args.sheet, args.overwrite)
     if args.cameras.startswith("orbit"):
         orbit_count(args.cameras)  # before minutes of rendering
-    outcome = evaluate(run, args.base, args.sketches, args.resolution, args.device, args.clip_model, args.prompt,
-                       args.clip_views, args.clip_resolution, args.cameras, args.target, args.novel_resolution,
-                       args.max_novel_views)
-    output.parent.mkdir(parents=True, exist_ok=True)
-    output.write_text(json.dumps(outcome["metrics"], indent=2))
-    sheet.parent.mkdir(parents=True, exist_ok=True)
-    import cv2
-
-    if not cv2.imwrite(str(sheet), (outcome["sheet"].numpy().clip(0, 1) * 255).round().astype(np.uint8)[..., ::-1]):
-        raise SkedUserError(f"--sheet {sheet}: could not write the contact sheet (OpenCV needs a writable path "
-                            "ending in .png).")
+    hint = "Wait for it to end, or pass another --output (and --sheet)."
+    with contextlib.ExitStack() as outputs:  # their one writer, from the check that they may be written on
+        for path in dict.fromkeys((output, sheet)):
+            outputs.enter_context(writing(path, hint))
+        output_paths(run, args.output, args.sheet, args.overwrite)  # again: another sked-eval may have ended meanwhile
+        outcome = evaluate(run, args.base, args.sketches, args.resolution, args.device, args.clip_model, args.prompt,
+                           args.clip_views, args.clip_resolution, args.cameras, args.target, args.novel_resolution,
+                           args.max_novel_views)
+        write_outputs(outcome, output, sheet)
     mean = outcome["metrics"]["mean"]
     print(f"PSNR outside {mean['psnr_outside']:.2f} dB, SSIM outside {mean['ssim_outside']:.3f}, "
           f"IoS {mean['ios']:.3f} (base {mean['ios_base']:.3f}), region IoS {mean.get('ios_region', float('nan')):.3f} "

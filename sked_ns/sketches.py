@@ -37,6 +37,7 @@ import torch
 
 from sked_ns.cameras import cameras_of, check_camera_to_world, distort
 from sked_ns.errors import SkedUserError
+from sked_ns.run_lock import writing
 
 if TYPE_CHECKING:
     from nerfstudio.cameras.cameras import Cameras
@@ -366,6 +367,12 @@ def save_sketch_set(sketch_set: SketchSet, folder: Path, overwrite: bool = False
     Views are pinhole cameras (lens distortion is removed at load time), so nothing is lost.
     """
     folder = Path(folder)
+    # One writer (two sked-sketch saves at once would mix their masks), from the check that the set is new.
+    with writing(folder, "Wait for it to finish, or save into another folder."):
+        return _write_sketch_set(sketch_set, folder, overwrite)
+
+
+def _write_sketch_set(sketch_set: SketchSet, folder: Path, overwrite: bool) -> Path:
     json_path = folder / SKETCHES_JSON
     if json_path.exists() and not overwrite:
         raise FileExistsError(f"{json_path} already exists: choose another folder or pass overwrite=True.")

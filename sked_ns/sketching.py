@@ -24,6 +24,7 @@ import numpy as np
 
 from sked_ns.edit_box import EditBox, compute_edit_box
 from sked_ns.hull_check import HullCheck, check_hull
+from sked_ns.run_lock import writing
 from sked_ns.sketches import (
     SKETCHES_JSON,
     DataparserTransform,
@@ -223,6 +224,11 @@ def write_canvases(render: Callable[[PinholeCamera], np.ndarray], cameras: Seque
                    transform: DataparserTransform, folder: Path, names: Optional[Sequence[str]] = None) -> Path:
     """Render `view_XX.png` canvases and `canvases.json` (their cameras, data frame) into `folder`."""
     folder = Path(folder)
+    with writing(folder, "Wait for it to finish, or choose a new folder for the canvases."):  # its one writer
+        return _write_canvases(render, cameras, transform, folder, names)
+
+
+def _write_canvases(render, cameras, transform, folder: Path, names) -> Path:
     if (folder / CANVASES_JSON).exists():
         raise FileExistsError(f"{folder / CANVASES_JSON} already exists: choose a new folder for the canvases.")
     folder.mkdir(parents=True, exist_ok=True)

@@ -29,6 +29,7 @@ from sked_ns.base_scene import BaseScene, checkpoint_step, copy_base_architectur
 from sked_ns.compat import train_loop_adds_start_step
 from sked_ns.errors import SkedFileNotFoundError, SkedUserError, check_writable_folder
 from sked_ns.resume import resumed_config, typed_settings
+from sked_ns.run_lock import hold, write_failure
 from sked_ns.safe_step import GuardedGradScaler, GuardedOptimizers, StepGuard
 from sked_ns.core import SkedOptions
 from sked_ns.nerfacto_model import SkedNerfactoModelConfig
@@ -49,6 +50,8 @@ class SkedTrainerConfig(TrainerConfig):
         resolve_edit(self)  # before saving, so config.yml describes the edit's real model
         # Before anything is written, not when the first checkpoint is due.
         check_writable_folder(self.get_base_dir(), "--output-dir", self.output_dir)
+        # The run folder's one writer for the run's life, before config.yml or a checkpoint folder is written.
+        hold(self.get_base_dir(), "Wait for it to end, or give this edit another --timestamp or --output-dir.")
         check_writable_folder(self.get_checkpoint_dir(), "--output-dir", self.output_dir)
         super().save_config()
 
@@ -252,8 +255,7 @@ class SkedTrainer(Trainer):
             checkpoint_dir.mkdir(parents=True, exist_ok=True)
             publish_atomically(staging / path.name, path)
         except (OSError, RuntimeError) as error:
-            raise SkedUserError(f"{path}: cannot write the checkpoint ({error}); check the free space and "
-                                "--output-dir.") from error
+            raise write_failure(path, error, "checkpoint") from error
         finally:
             self.checkpoint_dir = checkpoint_dir
         with contextlib.suppress(OSError):

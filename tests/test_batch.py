@@ -7,12 +7,16 @@ tiny reference-guided CPU edits of the demo base; the Slurm one starts slurmctld
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import json
 import os
 import re
+import signal
+import socket
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -26,9 +30,11 @@ from sked_ns.batch.plan import load_plan
 from sked_ns.batch.report import ROW_HEIGHT, write_report
 from sked_ns.batch.runners import run_local, sbatch_script, slurm_options
 from sked_ns.batch.task import run_job
+from sked_ns import run_lock
 from sked_ns.errors import SkedUserError
 
 from slurm_cluster import SlurmCluster, why_not
+from test_run_lock import WRITE, holding, killed
 
 TINY_FLAGS = ("--machine.device-type cpu --mixed-precision False --pipeline.model.guidance-resolution 16 "
               "--pipeline.model.silhouette-resolution 16 --steps-per-eval-image 1000000 pipeline.model.guidance:reference")
@@ -239,6 +245,65 @@ def test_interrupted_jobs_resume_and_gpus_run_one_edit_each(fake_scene, tmp_path
     assert {device for _, device in seen.values()} == {"3", "5"}, "one edit per GPU"
 
 
+def test_a_job_whose_runner_was_killed_is_waited_for_never_run_twice(fake_scene, tmp_path, monkeypatch):
+    """kill -9 of sked-batch leaves the ns-train it started running: the next sked-batch reports that process and
+    starts no second writer into its run folder; once it has finished the edit, the job is done, not failed."""
+    import sked_ns.batch.task as task
+
+    plan = load_plan(write_plan(tmp_path, fake_scene, [{"name": "e", "seeds": [0, 1]}]))
+    job, by_hand = plan.jobs
+    fake_checkpoints(job, [4], total=10)
+    runner = subprocess.Popen([sys.executable, "-c", "pass"])
+    runner.wait()  # killed
+    edit = holding(job.run_dir)  # its ns-train, which holds the run folder as ns-train does
+    host = socket.gethostname()
+    state.write_marker(job, "running", {"owner": {"pid": runner.pid, "host": host}, "attempt": 1, "child": {
+        "pid": edit.pid, "host": host, "started": run_lock.process_start(edit.pid), "command": "ns-train"}})
+    status = state.job_status(job, {})
+    assert (status.state, status.where) == ("running", f"pid {edit.pid} on {host}"), status
+    assert f"its runner (pid {runner.pid} on {host}) has ended" in status.note
+    started = []
+    monkeypatch.setattr(task, "run_stage", lambda job_, command, env: started.append(command) or 0)
+    assert run_job(job) == 0 and started == [], "a second ns-train into the same run folder"
+    assert state.read_marker(job, "failed") is None and state.read_marker(job, "running")["child"]["pid"] == edit.pid
+    fake_checkpoints(job, [9], total=10)  # the orphan finishes the edit and ends
+    killed(edit)
+    assert "ran to its end" in state.job_status(job, {}).note
+    assert run_job(job) == 0 and started == [], "nothing left to edit"
+    assert state.job_status(job, {}).state == "done" and state.read_marker(job, "failed") is None
+    # An `ns-train` resumed by hand into a job's run folder (no marker names it) runs the job too.
+    typed = holding(by_hand.run_dir)
+    try:
+        assert state.job_status(by_hand, {}).where == f"pid {typed.pid} on {host}"
+        assert to_run(plan, None) == [], "done, and running"
+        assert run_job(by_hand) == 0 and started == []
+    finally:
+        killed(typed)
+
+
+def test_one_runner_per_job(fake_scene, tmp_path, monkeypatch):
+    """Two sked-batch runs of one plan: a job the other has taken (before its marker is written) is left to it."""
+    import sked_ns.batch.task as task
+
+    job = load_plan(write_plan(tmp_path, fake_scene, [{"name": "e"}])).jobs[0]
+    other = holding(job.folder / "batch", WRITE)  # another sked-batch running the job
+    started = []
+    monkeypatch.setattr(task, "run_stage", lambda job_, command, env: started.append(command) or 0)
+    try:
+        assert run_job(job) == 0 and started == []
+        assert state.read_marker(job, "running") is None, "the markers are the other runner's to write"
+    finally:
+        killed(other)
+    monkeypatch.undo()
+    monkeypatch.setattr(task, "executable", lambda name: sys.executable)
+    state.write_marker(job, "running", {"owner": state.this_owner()})
+    # The runner records the command it starts (what a kill -9 of the runner leaves behind).
+    code = task.run_stage(job, ["ns-train", "-c", "import os; print('pid', os.getpid())"], None)
+    child = state.read_marker(job, "running")["child"]
+    assert code == 0 and f"pid {child['pid']}\n" in job.log.read_text()
+    assert child["command"] == "ns-train" and child["started"] is not None
+
+
 def test_the_sbatch_script_maps_array_tasks_to_jobs(fake_scene, tmp_path):
     plan = load_plan(write_plan(tmp_path, fake_scene, [{"name": "e", "seeds": [0, 1]}],
                                 slurm={"partition": "gpu", "time": "4:00:00", "max_parallel": 8}))
@@ -250,6 +315,22 @@ def test_the_sbatch_script_maps_array_tasks_to_jobs(fake_scene, tmp_path):
     assert re.search(r'exec \S*python\S* -m sked_ns\.batch task \S+plan\.yml --job "\$\{JOBS\[\$SLURM_ARRAY_TASK_ID\]\}"',
                      script)
     assert "--gpus" not in sbatch_script(plan, plan.jobs, slurm_options(plan, {"gpus": 0}))
+
+
+def test_two_submissions_in_one_second_keep_their_own_scripts(fake_scene, tmp_path, monkeypatch):
+    import sked_ns.batch.runners as runners
+
+    plan = load_plan(write_plan(tmp_path, fake_scene, [{"name": "e", "seeds": [0, 1]}]))
+    arrays = iter(["101", "102"])
+    monkeypatch.setattr(runners, "sbatch", lambda arguments: next(arrays))
+    monkeypatch.setattr(runners.time, "strftime", lambda form, *args: "20260101-000000")  # the same second
+    options = slurm_options(plan, {"gpus": 0})
+    options.report_job = False
+    for job in plan.jobs:  # scripts that launch a submission per job
+        runners.submit_slurm(plan, [job], options)
+    for job in plan.jobs:
+        script = Path(state.read_marker(job, "submitted")["script"]).read_text()
+        assert f"JOBS=({job.name})" in script, f"{job.name}'s array runs another job"
 
 
 def test_the_report_has_a_row_and_a_sheet_row_per_job(fake_scene, tmp_path):
@@ -279,6 +360,22 @@ def test_the_report_has_a_row_and_a_sheet_row_per_job(fake_scene, tmp_path):
     assert sheet.getpixel((sheet.width - 1, ROW_HEIGHT + ROW_HEIGHT // 2)) != (255, 0, 0)
 
 
+def test_reports_are_written_one_at_a_time(fake_scene, tmp_path):
+    """The Slurm report job and a `sked-batch report` at once: the second waits, the three files are one table's."""
+    plan = load_plan(write_plan(tmp_path, fake_scene, [{"name": "e"}]))
+    other = holding(plan.output / "results.csv", WRITE)  # another report being written
+    second = threading.Thread(target=write_report, args=(plan,))
+    second.start()
+    second.join(timeout=10)
+    try:
+        assert second.is_alive() and not (plan.output / "results.csv").exists(), "written beside another report"
+    finally:
+        killed(other)
+    second.join()
+    assert [p.name for p in sorted(plan.output.iterdir()) if p.is_file()] == ["contact_sheet.png", "results.csv",
+                                                                            "results.json"]
+
+
 # ---- real edits ---------------------------------------------------------------------------------
 
 
@@ -302,6 +399,31 @@ def test_local_batch_runs_evaluates_reports_and_skips_what_is_done(scene, tmp_pa
     again = sked_batch(path, "--local")  # idempotent: nothing left to run
     assert again.returncode == 0 and "nothing to run" in again.stdout, again.stdout + again.stderr
     assert status_rows(again.stdout) == rows
+
+
+def test_the_edit_of_a_killed_runner_is_reported_not_started_again(scene, tmp_path):
+    """kill -9 of `sked-batch --local` leaves its ns-train editing: status names it, a new run leaves it alone."""
+    path = write_plan(tmp_path, scene, [{"name": "long", "seed": 0}],
+                      defaults={"flags": TINY_FLAGS + " --max-num-iterations 2000 --steps-per-save 1000"})
+    job = load_plan(path).jobs[0]
+    runner = subprocess.Popen([sys.executable, "-m", "sked_ns.batch", str(path), "--local"], stdout=subprocess.DEVNULL,
+                              stderr=subprocess.DEVNULL)
+    wait_for(lambda: run_lock.holder(job.run_dir), 600, "its ns-train to take the run folder", [job.log], poll=0.2)
+    edit = run_lock.holder(job.run_dir)
+    runner.kill()  # kill -9: no chance to stop its ns-train
+    runner.wait()
+    try:
+        assert run_lock.alive(edit), "the edit goes on without its runner"
+        status = sked_batch("status", path)
+        assert status_rows(status.stdout)["long-s0"][0] == "running", status.stdout
+        assert f"pid {edit['pid']} on {socket.gethostname()}" in status.stdout
+        again = sked_batch(path, "--local")
+        assert again.returncode == 0 and "nothing to run" in again.stdout, again.stdout + again.stderr
+        assert job.log.read_text().count("$ ns-train") == 1, "a second ns-train into the same run folder"
+        assert run_lock.alive(edit) and state.read_marker(job, "failed") is None
+    finally:
+        with contextlib.suppress(ProcessLookupError):
+            os.kill(edit["pid"], signal.SIGKILL)
 
 
 @pytest.fixture(scope="module")

@@ -12,9 +12,10 @@ import json
 from pathlib import Path
 from typing import Dict, List, Optional
 
-from sked_ns.atomic import write_text_atomically
+from sked_ns.atomic import publish_atomically, write_text_atomically
 from sked_ns.batch.plan import Plan
 from sked_ns.batch.state import JobStatus, plan_status
+from sked_ns.run_lock import writing
 
 ROW_HEIGHT = 128
 """Contact-sheet row height in pixels (each job's renders are scaled to it)."""
@@ -49,19 +50,23 @@ def result_rows(plan: Plan, statuses: List[JobStatus]) -> List[Dict[str, object]
 
 def write_report(plan: Plan, statuses: Optional[List[JobStatus]] = None) -> Dict[str, Path]:
     """results.csv, results.json and contact_sheet.png in the plan's output folder."""
-    statuses = plan_status(plan.jobs) if statuses is None else statuses
-    rows = result_rows(plan, statuses)
-    columns = list(dict.fromkeys(key for row in rows for key in row))
-    table = io.StringIO()
-    writer = csv.DictWriter(table, fieldnames=columns, lineterminator="\n")
-    writer.writeheader()
-    writer.writerows(rows)
     paths = {"csv": plan.output / "results.csv", "json": plan.output / "results.json",
              "sheet": plan.output / "contact_sheet.png"}
-    write_text_atomically(paths["csv"], table.getvalue())
-    write_text_atomically(paths["json"], json.dumps({"plan": plan.name, "plan_file": str(plan.path), "jobs": rows},
-                                                    indent=2))
-    contact_sheet(statuses).save(paths["sheet"])
+    # One report at a time (the Slurm report job, a --local run, `sked-batch report`): the three files from one table.
+    with writing(paths["csv"], "Its report is being written.", wait=True):
+        statuses = plan_status(plan.jobs) if statuses is None else statuses
+        rows = result_rows(plan, statuses)
+        columns = list(dict.fromkeys(key for row in rows for key in row))
+        table = io.StringIO()
+        writer = csv.DictWriter(table, fieldnames=columns, lineterminator="\n")
+        writer.writeheader()
+        writer.writerows(rows)
+        write_text_atomically(paths["csv"], table.getvalue())
+        write_text_atomically(paths["json"], json.dumps({"plan": plan.name, "plan_file": str(plan.path), "jobs": rows},
+                                                        indent=2))
+        partial = paths["sheet"].with_name(f".{paths['sheet'].name}.partial")
+        contact_sheet(statuses).save(partial, format="PNG")
+        publish_atomically(partial, paths["sheet"])
     return paths
 
 

@@ -7,6 +7,7 @@ submitted with Slurm's own `sbatch`; then a report job that waits for the array 
 
 from __future__ import annotations
 
+import itertools
 import os
 import queue
 import shlex
@@ -134,16 +135,29 @@ def sbatch(arguments: List[str]) -> str:
     return result.stdout.strip().split(";")[0]
 
 
+def new_script(logs: Path, script: str) -> Path:
+    """`submit-<time>.sbatch`, a file of this submission's own: two in one second get `-2`, `-3`... (each array
+    runs the jobs its own script lists, and its markers name that script)."""
+    stamp = time.strftime("%Y%m%d-%H%M%S")
+    for number in itertools.count(1):
+        path = logs / (f"submit-{stamp}.sbatch" if number == 1 else f"submit-{stamp}-{number}.sbatch")
+        try:
+            with open(path, "x") as file:  # created here, or another submission's: the next name
+                file.write(script)
+            return path
+        except FileExistsError:
+            continue
+
+
 def submit_slurm(plan: Plan, jobs: List[Job], options: SlurmOptions, dry_run: bool = False) -> Optional[str]:
     """Submit the jobs as one array (and the report after it); the array's job id."""
     logs = plan.output / "slurm"
     logs.mkdir(parents=True, exist_ok=True)
-    script_path = logs / f"submit-{time.strftime('%Y%m%d-%H%M%S')}.sbatch"
     script = sbatch_script(plan, jobs, options)
     if dry_run:
         print(script)
         return None
-    script_path.write_text(script)
+    script_path = new_script(logs, script)
     array_id = sbatch([str(script_path)])
     for index, job in enumerate(jobs):
         write_marker(job, "submitted", {"slurm_task": f"{array_id}_{index}", "script": str(script_path), "at": now()})

@@ -20,6 +20,7 @@ from typing import Dict, Iterable, List, Optional
 
 from sked_ns.atomic import write_text_atomically
 from sked_ns.batch.plan import Job
+from sked_ns.run_lock import alive, holder, process_start
 
 STATES = ("done", "running", "queued", "failed", "interrupted", "pending", "changed")
 TO_RUN = ("pending", "failed", "interrupted")
@@ -95,15 +96,7 @@ def this_owner() -> dict:
                 "slurm_task": f"{os.environ.get('SLURM_ARRAY_JOB_ID', os.environ['SLURM_JOB_ID'])}_"
                               f"{os.environ.get('SLURM_ARRAY_TASK_ID', '0')}",
                 "host": socket.gethostname()}
-    return {"pid": os.getpid(), "host": socket.gethostname(), "started": _process_start(os.getpid())}
-
-
-def _process_start(pid: int) -> Optional[str]:
-    """The process's start time (Linux), so a reused pid is not taken for the runner."""
-    try:
-        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[19]
-    except (OSError, IndexError):
-        return None
+    return {"pid": os.getpid(), "host": socket.gethostname(), "started": process_start(os.getpid())}
 
 
 def slurm_states(ids: Iterable[str]) -> Optional[Dict[str, str]]:
@@ -130,19 +123,16 @@ def owner_alive(owner: dict, slurm: Optional[Dict[str, str]]) -> Optional[bool]:
         if slurm is None:
             return None
         return slurm.get(owner["slurm_job"], slurm.get(owner.get("slurm_task", ""))) in SLURM_ALIVE
-    if owner.get("host") != socket.gethostname():
-        return None
-    pid = int(owner.get("pid", 0))
-    if pid <= 0:
-        return False
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        pass
-    started = owner.get("started")
-    return started is None or _process_start(pid) in (None, started)
+    return alive(owner)
+
+
+def writer(job: Job, running: Optional[dict]) -> Optional[dict]:
+    """The live process writing the job's run: the command its runner started (which a kill -9 of the runner
+    leaves running), or whoever holds the run folder (an `ns-train` resumed by hand); None when none runs."""
+    child = (running or {}).get("child")
+    if child and alive(child):
+        return child
+    return holder(job.run_dir)
 
 
 @dataclass
@@ -174,11 +164,16 @@ def job_status(job: Job, slurm: Optional[Dict[str, str]]) -> JobStatus:
     if read_marker(job, "done") is not None:
         return status("done")
     running, submitted = read_marker(job, "running"), read_marker(job, "submitted")
+    working = writer(job, running)
     if running is not None:
-        alive = owner_alive(running.get("owner", {}), slurm)
-        if alive or alive is None:
+        runs = owner_alive(running.get("owner", {}), slurm)
+        if runs or runs is None:
+            doing = f"{(working.get('command') or '?').split()[0]} pid {working['pid']}" if working else ""
             return status("running", _owner_text(running.get("owner", {})),
-                          "" if alive else "cannot check from here")
+                          doing if runs else "cannot check from here")
+    if working is not None:  # its runner has ended (kill -9), or someone resumed the edit by hand
+        return status("running", _owner_text(working), f"{working.get('command') or 'a process'} writes its run folder"
+                      + (f"; its runner ({_owner_text(running.get('owner', {}))}) has ended" if running else ""))
     if submitted is not None:
         queued = slurm is not None and slurm.get(submitted["slurm_task"]) in SLURM_ALIVE
         if queued:
@@ -188,6 +183,7 @@ def job_status(job: Job, slurm: Optional[Dict[str, str]]) -> JobStatus:
         return status("failed", failed.get("where", ""), f"{failed.get('stage')}: {failed.get('reason')}")
     if running is not None:
         return status("interrupted", _owner_text(running.get("owner", {})),
+                      "the edit ran to its end: evaluated and marked done at the next run" if finished(job) else
                       f"resumes from step {step}" if step else "starts again (no checkpoint yet)")
     return status("pending")
 

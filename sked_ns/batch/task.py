@@ -7,9 +7,11 @@ job's log; the markers say what happened (state.py).
 
 from __future__ import annotations
 
+import contextlib
 import datetime
 import os
 import shutil
+import socket
 import subprocess
 import sys
 from pathlib import Path
@@ -17,7 +19,8 @@ from typing import Dict, List, Optional
 
 from sked_ns.batch.plan import Job
 from sked_ns.batch.state import (finished, job_record, marker, owner_alive, progress, read_marker, remove_marker,
-                                 slurm_states, this_owner, write_marker)
+                                 slurm_states, this_owner, write_marker, writer)
+from sked_ns.run_lock import WriterBusy, describe, is_this_process, process_start, writing
 
 
 def now() -> str:
@@ -39,6 +42,9 @@ def claim(job: Job) -> Optional[str]:
         ids = [owner[key] for key in ("slurm_job",) if key in owner]
         if not same and owner_alive(owner, slurm_states(ids) if ids else {}):
             return f"already running ({running.get('owner')})"
+    working = writer(job, running)
+    if working is not None and not is_this_process(working):  # never a second writer: it is waited for
+        return f"already running: {describe(working)} writes {job.run_dir}"
     if read_marker(job, "done") is not None:
         return "already done"
     attempt = max(int((running or {}).get("attempt", 0)), int((read_marker(job, "failed") or {}).get("attempt", 0))) + 1
@@ -48,13 +54,22 @@ def claim(job: Job) -> Optional[str]:
 
 
 def run_stage(job: Job, command: List[str], env: Optional[Dict[str, str]]) -> int:
-    """One command, its output appended to the job's log."""
+    """One command, its output appended to the job's log; its process in the running marker."""
     job.log.parent.mkdir(parents=True, exist_ok=True)
     with open(job.log, "a") as log:
         log.write(f"\n=== {now()}, {_where(this_owner())}\n$ {' '.join(_quoted(command))}\n")
         log.flush()
         resolved = [executable(command[0])] + command[1:]
-        return subprocess.run(resolved, stdout=log, stderr=subprocess.STDOUT, env=env).returncode
+        with subprocess.Popen(resolved, stdout=log, stderr=subprocess.STDOUT, env=env) as process:
+            try:
+                # A kill -9 of this runner leaves the command running: the next sked-batch finds it here.
+                write_marker(job, "running", {**(read_marker(job, "running") or {}), "child": {
+                    "pid": process.pid, "host": socket.gethostname(), "started": process_start(process.pid),
+                    "command": command[0]}})
+                return process.wait()
+            except BaseException:  # as subprocess.run: an interrupted runner takes its command down with it
+                process.kill()
+                raise
 
 
 def _quoted(command: List[str]) -> List[str]:
@@ -84,7 +99,17 @@ def evaluated(job: Job) -> bool:
 
 
 def run_job(job: Job, env: Optional[Dict[str, str]] = None) -> int:
-    """Run (or resume, or only evaluate) the job here; 0 when it is done."""
+    """Run (or resume, or only evaluate) the job here; 0 when it is done (or another runner has it)."""
+    with contextlib.ExitStack() as runner:
+        try:  # one runner per job: its markers have one writer
+            runner.enter_context(writing(job.folder / "batch", "It runs the job."))
+        except WriterBusy as busy:
+            print(f"{job.name}: already running ({describe(busy.record)}); nothing to do")
+            return 0
+        return _run_claimed(job, env)
+
+
+def _run_claimed(job: Job, env: Optional[Dict[str, str]]) -> int:
     reason = claim(job)
     if reason is not None:
         print(f"{job.name}: {reason}; nothing to do")

@@ -26,6 +26,7 @@ from sked_ns.edit_box import compute_edit_box
 from sked_ns.metrics import intersection_over_sketch, psnr_outside
 from sked_ns.novel_views import eval_split_views, evaluate_novel_views
 from sked_ns.preservation import SketchDistanceField, check_beta
+from sked_ns.run_lock import hold
 from sked_ns.sketches import DataparserTransform, SketchSet, load_sketch_set, save_sketch_set
 
 MARKER = ".sked-demo"  # marks a folder the demo made, so a rerun may replace it
@@ -120,7 +121,7 @@ def run(output: Path, beta: float = 0.025, size: int = 128, iterations: int = 10
     output = Path(output).resolve()  # absolute paths in config.yml: ns-* commands work from anywhere
     if output.exists() and any(output.iterdir()) and not (output / MARKER).exists():
         raise FileExistsError(f"{output} exists and was not made by sked-demo: choose another --output.")
-    output.mkdir(parents=True, exist_ok=True)
+    hold(output, "Wait for it to end, or choose another --output.")  # this process's alone until it ends
     (output / MARKER).touch()
 
     data = output / "data"
