@@ -302,3 +302,36 @@ def test_a_full_disk_at_resume_keeps_config_yml_and_says_so_in_one_line(tmp_path
     monkeypatch.undo()
     assert (run / "config.yml").read_text() == before
     assert sorted(p.name for p in run.iterdir()) == ["config.yml", "nerfstudio_models"]  # no partial file left
+
+
+def saved_splat_edit() -> object:
+    """saved_edit() of a splatfacto base: the model and optimisers start_edit gives a splat edit."""
+    from nerfstudio.models.splatfacto import SplatfactoModelConfig
+
+    from sked_ns.splat_model import splat_optimizers
+    from sked_ns.trainer import edit_model_config
+
+    config = saved_edit()
+    config.pipeline.model = edit_model_config(config.pipeline.model, SplatfactoModelConfig())
+    config.optimizers = splat_optimizers(config.max_num_iterations, config.pipeline.model)
+    return yaml.load(yaml.dump(config), Loader=yaml.Loader)
+
+
+def test_a_splat_edit_compares_each_typed_flag_as_a_nerf_edit_does():
+    """The command line parses the preset's NeRF model config; a splat edit's own is no subcommand the user typed."""
+    config = resume_config(Path("/run"))
+    config.pipeline.model.beta = 0.05  # typed, the saved edit's value: no change
+    resumed = resume(config, saved_splat_edit())
+    assert type(resumed.pipeline.model).__name__ == "SkedSplatModelConfig" and resumed.pipeline.model.beta == 0.05
+    resume(resumed, saved_splat_edit())  # the trainer resolves it again
+    config = resume_config(Path("/run"))
+    config.pipeline.model.beta, config.pipeline.model.num_nerf_samples_per_ray = 0.5, 7
+    with pytest.raises(SkedUserError) as refused:
+        resume(config, saved_splat_edit())
+    message = str(refused.value)
+    assert "--pipeline.model.beta: 0.5 here, 0.05 in the saved edit" in message, message
+    assert ("--pipeline.model.num-nerf-samples-per-ray: 7 here; the saved edit's SkedSplatModelConfig has no such "
+            "setting") in message, message
+    assert "subcommand" not in message, message
+    with pytest.raises(SkedUserError, match=r"--pipeline\.model\.beta: 0\.025 here, 0\.05"):
+        resume(resume_config(Path("/run")), saved_splat_edit(), argv=["ns-train", "sked", "--pipeline.model.beta", "0.025"])
