@@ -335,3 +335,17 @@ def test_a_splat_edit_compares_each_typed_flag_as_a_nerf_edit_does():
     assert "subcommand" not in message, message
     with pytest.raises(SkedUserError, match=r"--pipeline\.model\.beta: 0\.025 here, 0\.05"):
         resume(resume_config(Path("/run")), saved_splat_edit(), argv=["ns-train", "sked", "--pipeline.model.beta", "0.025"])
+
+
+def test_an_edit_resumed_by_an_older_version_opens_and_says_how_nerfstudio_can_open_it(tmp_path):
+    run = fake_run(tmp_path / "run", [30])
+    older = yaml.load((run / "config.yml").read_text(), Loader=yaml.Loader)
+    older.load_dir, older.load_step = tmp_path / "interrupted" / "nerfstudio_models", 20  # as it resumed
+    (run / "config.yml").write_text(yaml.dump(older))
+    with pytest.warns(UserWarning, match=r"config.yml: load_step 20 is the step its resume started from, so "
+                                         r"ns-render, ns-export and ns-viewer .* `load_step: null`"):
+        assert resolve_base(run).checkpoint.name == "step-000000030.ckpt"  # sked-eval and a resume take the latest
+    config = resumed_into(run, tmp_path / "out")
+    with pytest.warns(UserWarning, match="load_step 20"):
+        config.save_config()
+    assert (config.load_dir, config.load_step) == (run / "nerfstudio_models", 30)
