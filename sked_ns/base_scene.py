@@ -181,7 +181,19 @@ def resolve_base(load_dir: Path, step: Optional[int] = None, flag: str = "--load
             "nerfacto (also -big, -huge), instant-ngp (also -bounded) and splatfacto (also -big) scenes, and its own "
             "edits."
         )
+    if base_family(model_config) == "sked":
+        warn_stale_start(config, config_path)
     return BaseScene(run_dir=run_dir, checkpoint=checkpoint, config=config)
+
+
+def warn_stale_start(config, config_path: Path) -> None:
+    """An edit resumed by an older sked_ns saved the step it resumed from as config.yml's load_step: nerfstudio's
+    ns-render, ns-export and ns-viewer load that step from the run (SKED's own loaders take the latest)."""
+    step = getattr(config, "load_step", None)
+    if step is not None:
+        warnings.warn(f"{config_path}: load_step {step} is the step its resume started from, so ns-render, ns-export "
+                      "and ns-viewer load that checkpoint, or fail where the run lacks it; change the line to "
+                      "`load_step: null` for the run's latest.", stacklevel=3)
 
 
 def read_model_state(checkpoint: Path) -> Dict[str, Tensor]:

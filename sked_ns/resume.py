@@ -36,6 +36,9 @@ SETTINGS_SINCE = {
 }
 """Settings added after edits were saved, each with the value that continues such an edit as it ran and the commit
 that added it: a config.yml without the setting would otherwise read the new default (its class attribute)."""
+BASE_SHAPED = ("pipeline.model",)
+"""Configs whose class follows from the base (nerfacto, instant-ngp or splatfacto), not from a subcommand: the
+preset's class parsed here is no change, and each typed setting in them is compared on its own."""
 ALIASES = {"sketches": "pipeline.model.sketches", "prompt": "pipeline.model.prompt"}
 """Top-level flags that stand for a model setting."""
 MISSING = object()
@@ -138,9 +141,19 @@ def changed_subcommand(config, saved, path: str):
     for end in range(1, len(parts) + 1):
         node = ".".join(parts[:end])
         here = get_setting(config, node)
-        if is_dataclass(here) and type(here) is not type(get_setting(saved, node)):
+        if is_dataclass(here) and node not in BASE_SHAPED and type(here) is not type(get_setting(saved, node)):
             return node
     return None
+
+
+def _owner(saved, path: str) -> str:
+    """The class of the innermost config on `path` that the saved edit has (its model for a model setting)."""
+    parts = path.split(".")
+    for end in range(len(parts) - 1, 0, -1):
+        node = get_setting(saved, ".".join(parts[:end]))
+        if is_dataclass(node):
+            return type(node).__name__
+    return type(saved).__name__
 
 
 def refused_changes(typed: Dict[str, object], config, saved) -> list:
@@ -161,7 +174,10 @@ def refused_changes(typed: Dict[str, object], config, saved) -> list:
         before = get_setting(saved, ALIASES.get(path, path))
         if isinstance(value, type) and is_dataclass(before):
             before = type(before)  # a subcommand's node stands for its type
-        if not same_setting(value, before):
+        if before is MISSING:  # e.g. a NeRF's setting typed for a splat edit
+            changes.append(f"{flag(path)}: {_show(value)} here; the saved edit's {_owner(saved, path)} has no such "
+                           "setting")
+        elif not same_setting(value, before):
             changes.append(f"{flag(path)}: {_show(value)} here, {_show(before)} in the saved edit")
     return changes
 

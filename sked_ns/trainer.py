@@ -11,6 +11,7 @@ edit that result again instead. Checkpoints are written so that a kill cannot le
 from __future__ import annotations
 
 import contextlib
+import copy
 import pickle
 import warnings
 from dataclasses import dataclass, field, fields
@@ -18,13 +19,14 @@ from pathlib import Path
 from typing import Optional, Type
 
 import torch
+import yaml
 from nerfstudio.engine.trainer import Trainer, TrainerConfig
 from nerfstudio.models.instant_ngp import InstantNGPModelConfig
 from nerfstudio.models.splatfacto import SplatfactoModelConfig
 from nerfstudio.utils.decorators import check_main_thread
 from nerfstudio.utils.rich_utils import CONSOLE
 
-from sked_ns.atomic import publish_atomically
+from sked_ns.atomic import publish_atomically, write_text_atomically
 from sked_ns.base_scene import BaseScene, checkpoint_step, copy_base_architecture, dataparser_command, resolve_base
 from sked_ns.compat import train_loop_adds_start_step
 from sked_ns.errors import SkedFileNotFoundError, SkedUserError, check_writable_folder
@@ -53,7 +55,23 @@ class SkedTrainerConfig(TrainerConfig):
         # The run folder's one writer for the run's life, before config.yml or a checkpoint folder is written.
         hold(self.get_base_dir(), "Wait for it to end, or give this edit another --timestamp or --output-dir.")
         check_writable_folder(self.get_checkpoint_dir(), "--output-dir", self.output_dir)
-        super().save_config()
+        save_run_config(self)
+
+
+def save_run_config(config: TrainerConfig) -> None:
+    """config.yml as the run's later readers need it, written whole or not at all (a full disk keeps the old one).
+
+    ns-render, ns-export and ns-viewer (nerfstudio's eval_setup) load `load_step` from the run's own checkpoints,
+    and a resume's load_dir / load_step name the interrupted run's: they describe this start, not the run."""
+    path = config.get_base_dir() / "config.yml"
+    run = copy.copy(config)  # the trainer still resumes from the in-memory config
+    run.load_dir = run.load_step = run.load_checkpoint = None
+    CONSOLE.log(f"Saving config to: {path}")
+    try:
+        write_text_atomically(path, yaml.dump(run))
+    except OSError as error:
+        raise SkedUserError(f"{path}: cannot write the run's config ({error.strerror or error}). Free space there, "
+                            "or pass another --output-dir.") from error
 
 
 def resolve_edit(config: SkedTrainerConfig) -> None:

@@ -434,6 +434,42 @@ def test_ns_export_works_on_an_edited_scene(edited, tmp_path, exporter, argument
     assert (tmp_path / produced).stat().st_size > 1000
 
 
+@pytest.fixture(scope="module")
+def resumed(edited, tmp_path_factory):
+    """The edit resumed for two more iterations into its own folder, as sked-batch resumes a job (whose last
+    checkpoint replaces the one it resumed from)."""
+    job = tmp_path_factory.mktemp("job")
+    run = job / "edit" / "sked" / "run"
+    shutil.copytree(edited["run"], run)
+    config = resume_config(run, job, iterations=ITERATIONS + 2)
+    config.timestamp = "run"
+    assert run_edit(config).base_dir == run
+    return run
+
+
+def test_ns_export_and_ns_render_open_a_resumed_edit(resumed, tmp_path):
+    import shutil as _shutil
+    import subprocess
+    import sys
+
+    assert [p.name for p in (resumed / "nerfstudio_models").iterdir()] == [f"step-{ITERATIONS + 1:09d}.ckpt"]
+    tools = Path(sys.executable).parent
+    commands = {
+        "ns-export": ["pointcloud", "--load-config", str(resumed / "config.yml"), "--output-dir", str(tmp_path),
+                      "--num-points", "2000", "--remove-outliers", "False", "--normal-method", "open3d"],
+        "ns-render": ["interpolate", "--load-config", str(resumed / "config.yml"), "--output-path",
+                      str(tmp_path / "frames"), "--output-format", "images", "--pose-source", "train",
+                      "--interpolation-steps", "1", "--downscale-factor", "2", "--rendered-output-names", "rgb"],
+    }
+    for tool, arguments in commands.items():
+        result = subprocess.run([_shutil.which(tool, path=str(tools)) or _shutil.which(tool), *arguments],
+                                capture_output=True, text=True, timeout=600)
+        assert result.returncode == 0, tool + ": " + result.stdout[-2000:] + result.stderr[-2000:]
+        assert f"step-{ITERATIONS + 1:09d}.ckpt" in "".join(result.stdout.split()), "the resumed run's last step"
+    assert (tmp_path / "point_cloud.ply").stat().st_size > 1000
+    assert len(list((tmp_path / "frames").glob("*.jpg"))) >= 8
+
+
 def test_ns_render_makes_a_video_of_an_edited_scene(edited, tmp_path):
     import shutil as _shutil
     import subprocess

@@ -230,3 +230,122 @@ def test_output_folder_under_a_file_is_refused_with_its_flag(tmp_path, monkeypat
     monkeypatch.setattr(Path, "write_bytes", refuse)
     with pytest.raises(SkedUserError, match=r"--output-dir .*ro: cannot write there: Permission denied"):
         check_writable_folder(tmp_path / "ro", "--output-dir")
+
+
+# ---- the resumed run's config.yml ------------------------------------------------------------
+
+
+def resumed_into(run: Path, output_dir: Path, timestamp: str = "{timestamp}"):
+    """`ns-train sked --load-dir RUN --output-dir OUT --data ... --max-num-iterations 100` on a fake_run."""
+    config = resume_config(run, output_dir, iterations=100)
+    config.data = run  # the fake edit saved none
+    config.timestamp = timestamp
+    config.set_timestamp()
+    return config
+
+
+def test_a_resumed_runs_config_yml_names_none_of_the_interrupted_runs_checkpoints(tmp_path):
+    """nerfstudio's eval_setup (ns-render, ns-export, ns-viewer) loads config.yml's load_step from the run's own
+    folder: the step this start resumes from is the interrupted run's."""
+    run = fake_run(tmp_path / "run", [10])
+    config = resumed_into(run, tmp_path / "out")
+    config.save_config()
+    written = yaml.load((config.get_base_dir() / "config.yml").read_text(), Loader=yaml.Loader)
+    assert (written.load_dir, written.load_step, written.load_checkpoint) == (None, None, None)
+    assert written.max_num_iterations == 100 and type(written) is type(config)
+    assert (config.load_dir, config.load_step) == (run / "nerfstudio_models", 10)  # this start still resumes
+
+
+def full_disk(monkeypatch) -> None:
+    """Files open (and truncate) as on a full disk, and no byte can be written to them."""
+    import errno
+    import io
+
+    real_open = io.open
+
+    class Full:
+        def __init__(self, file):
+            self._file = file
+
+        def write(self, data):
+            if len(data):
+                raise OSError(errno.ENOSPC, "No space left on device")
+            return 0
+
+        def __getattr__(self, name):
+            return getattr(self._file, name)
+
+        def __enter__(self):
+            return self
+
+        def __exit__(self, *exception):
+            self._file.close()
+
+    def opened(file, mode="r", *args, **kwargs):
+        handle = real_open(file, mode, *args, **kwargs)
+        return handle if mode.startswith("r") and "+" not in mode else Full(handle)
+
+    monkeypatch.setattr(io, "open", opened)  # pathlib's writes and os.fdopen open through it
+
+
+def test_a_full_disk_at_resume_keeps_config_yml_and_says_so_in_one_line(tmp_path, monkeypatch):
+    # sked-batch resumes a job into its own folder: a failed write must not leave its config.yml empty.
+    run = fake_run(tmp_path / "job" / "edit" / "sked" / "run", [10])
+    before = (run / "config.yml").read_text()
+    config = resumed_into(run, tmp_path / "job", timestamp="run")
+    config.experiment_name = "edit"
+    assert config.get_base_dir() == run
+    full_disk(monkeypatch)
+    with pytest.raises(SkedUserError, match=r"^\S*job/edit/sked/run/config.yml: cannot write the run's config \(No "
+                                            r"space left on device\)\. Free space there, or pass another --output-dir"):
+        config.save_config()
+    monkeypatch.undo()
+    assert (run / "config.yml").read_text() == before
+    assert sorted(p.name for p in run.iterdir()) == ["config.yml", "nerfstudio_models"]  # no partial file left
+
+
+def saved_splat_edit() -> object:
+    """saved_edit() of a splatfacto base: the model and optimisers start_edit gives a splat edit."""
+    from nerfstudio.models.splatfacto import SplatfactoModelConfig
+
+    from sked_ns.splat_model import splat_optimizers
+    from sked_ns.trainer import edit_model_config
+
+    config = saved_edit()
+    config.pipeline.model = edit_model_config(config.pipeline.model, SplatfactoModelConfig())
+    config.optimizers = splat_optimizers(config.max_num_iterations, config.pipeline.model)
+    return yaml.load(yaml.dump(config), Loader=yaml.Loader)
+
+
+def test_a_splat_edit_compares_each_typed_flag_as_a_nerf_edit_does():
+    """The command line parses the preset's NeRF model config; a splat edit's own is no subcommand the user typed."""
+    config = resume_config(Path("/run"))
+    config.pipeline.model.beta = 0.05  # typed, the saved edit's value: no change
+    resumed = resume(config, saved_splat_edit())
+    assert type(resumed.pipeline.model).__name__ == "SkedSplatModelConfig" and resumed.pipeline.model.beta == 0.05
+    resume(resumed, saved_splat_edit())  # the trainer resolves it again
+    config = resume_config(Path("/run"))
+    config.pipeline.model.beta, config.pipeline.model.num_nerf_samples_per_ray = 0.5, 7
+    with pytest.raises(SkedUserError) as refused:
+        resume(config, saved_splat_edit())
+    message = str(refused.value)
+    assert "--pipeline.model.beta: 0.5 here, 0.05 in the saved edit" in message, message
+    assert ("--pipeline.model.num-nerf-samples-per-ray: 7 here; the saved edit's SkedSplatModelConfig has no such "
+            "setting") in message, message
+    assert "subcommand" not in message, message
+    with pytest.raises(SkedUserError, match=r"--pipeline\.model\.beta: 0\.025 here, 0\.05"):
+        resume(resume_config(Path("/run")), saved_splat_edit(), argv=["ns-train", "sked", "--pipeline.model.beta", "0.025"])
+
+
+def test_an_edit_resumed_by_an_older_version_opens_and_says_how_nerfstudio_can_open_it(tmp_path):
+    run = fake_run(tmp_path / "run", [30])
+    older = yaml.load((run / "config.yml").read_text(), Loader=yaml.Loader)
+    older.load_dir, older.load_step = tmp_path / "interrupted" / "nerfstudio_models", 20  # as it resumed
+    (run / "config.yml").write_text(yaml.dump(older))
+    with pytest.warns(UserWarning, match=r"config.yml: load_step 20 is the step its resume started from, so "
+                                         r"ns-render, ns-export and ns-viewer .* `load_step: null`"):
+        assert resolve_base(run).checkpoint.name == "step-000000030.ckpt"  # sked-eval and a resume take the latest
+    config = resumed_into(run, tmp_path / "out")
+    with pytest.warns(UserWarning, match="load_step 20"):
+        config.save_config()
+    assert (config.load_dir, config.load_step) == (run / "nerfstudio_models", 30)

@@ -260,9 +260,11 @@ def test_no_nan_at_beta_opacity_and_scale_extremes(splat_scene, tmp_path, beta, 
 
 def test_ns_train_sked_edits_a_splatfacto_run_exports_it_and_resumes(splat_scene, tmp_path):
     """`ns-train sked --load-dir <splatfacto run>`, `ns-export gaussian-splat` of the edit (its kept rows are the
-    base's, bit for bit), and resuming the edit to a longer total."""
+    base's, bit for bit), and resuming the edit to a longer total, which ns-export and ns-render open."""
     import numpy as np
     from nerfstudio.scripts.exporter import ExportGaussianSplat
+    import PIL.Image
+    from nerfstudio.scripts.render import RenderInterpolated
     from plyfile import PlyData
 
     from sked_ns.edit_run import edit_config, resume_config, run_edit
@@ -290,6 +292,14 @@ def test_ns_train_sked_edits_a_splatfacto_run_exports_it_and_resumes(splat_scene
     resumed = run_edit(resume_config(trainer.base_dir, tmp_path / "resumed", iterations=5))
     assert resumed.pipeline.model.sked_step == 4
     assert torch.equal(resumed.pipeline.model.kept.means, base["means"][kept])
+    # The resumed run opens in ns-export and ns-render (their eval_setup loads its own latest checkpoint).
+    ExportGaussianSplat(load_config=resumed.base_dir / "config.yml", output_dir=tmp_path / "resumed-ply").main()
+    assert PlyData.read(str(tmp_path / "resumed-ply" / "splat.ply"))["vertex"].count >= rows
+    RenderInterpolated(load_config=resumed.base_dir / "config.yml", output_path=tmp_path / "frames",
+                       output_format="images", pose_source="train", interpolation_steps=1,
+                       rendered_output_names=["rgb"]).main()
+    frames = sorted((tmp_path / "frames").glob("*.jpg"))
+    assert len(frames) >= 4 and np.asarray(PIL.Image.open(frames[0])).std() > 5, "rendered, not blank"
 
 
 def test_photo_anchor_removes_a_floater_in_front_of_a_training_photo(splat_scene, tmp_path):
