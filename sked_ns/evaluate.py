@@ -35,6 +35,8 @@ from sked_ns.sketches import load_sketch_set
 ALEXNET_WEIGHTS = "alexnet-owt-7be5be79.pth"  # what torchvision fetches for torchmetrics' LPIPS
 LARGE_RENDER = 2048
 """A render side above this is surely a typo (millions of rays a view)."""
+MANY_CLIP_VIEWS = 400
+"""Ten times the paper's 40 CLIP views: more is surely a typo."""
 REGION_IOS_OF_OTHER_BASE = ("n/a: --base's renders carry no preservation weight (only the edit's frozen copy of its "
                             "base knows the sketches); leave --base out to get it")
 
@@ -370,6 +372,8 @@ def warn_unusual(args) -> None:
         if value > LARGE_RENDER:
             warn(f"{flag} {value}: renders of {value * value} rays a view; sked-eval's renders are usually "
                  f"128-512 px.")
+    if args.clip_views > MANY_CLIP_VIEWS:
+        warn(f"--clip-views {args.clip_views}: that many renders for one CLIP figure; the paper averages 40.")
     if args.cameras is not None and is_orbit(args.cameras) and orbit_count(args.cameras) > args.max_novel_views:
         warn(f"--cameras {args.cameras}: only {args.max_novel_views} of the {orbit_count(args.cameras)} orbit views "
              f"are scored (--max-novel-views {args.max_novel_views}).")

@@ -125,6 +125,8 @@ def test_every_flag_is_checked_before_the_edit_loads(tmp_path, monkeypatch):
     with pytest.warns(SkedWarning, match=r"--cameras orbit:40: only 12 of the 40 orbit views are scored"), \
             pytest.raises(SkedUserError, match=r"run/nerfstudio_models: missing"):  # then the fake run is refused
         sked_eval(monkeypatch, run, "--output", fresh, "--cameras", "orbit:40")
+    with pytest.warns(SkedWarning, match=r"--clip-views 4000: that many renders"), pytest.raises(SkedUserError):
+        sked_eval(monkeypatch, run, "--output", fresh, "--clip-views", "4000")
     assert not fresh.parent.exists() and sorted(p.name for p in run.iterdir()) == ["config.yml"], "nothing written"
 
 

@@ -23,14 +23,13 @@ later submission finds it again. Every mistake is an error naming the plan file,
 from __future__ import annotations
 
 import bisect
-import os
 import re
 import shlex
 import tempfile
+from collections import abc
 from dataclasses import dataclass, field, replace
 from functools import cached_property
 from pathlib import Path
-from collections import abc
 from typing import Dict, Iterator, List, Optional, Sequence, Tuple
 
 from sked_ns.errors import SkedFileNotFoundError, SkedUserError
