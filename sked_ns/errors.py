@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import os
 import sys
+import warnings
 from pathlib import Path
 
 TRACEBACK_ENV = "SKED_TRACEBACK"
@@ -55,3 +56,26 @@ def check_writable_folder(folder: Path, flag: str, typed=None) -> None:
         where = "" if typed is None or Path(typed) == folder else f" (the run folder {folder})"
         raise SkedUserError(f"{flag} {folder if typed is None else typed}: cannot write there{where}: "
                             f"{error.strerror or error} ({error.filename or folder}). Pass a writable {flag}.") from error
+
+
+class SkedWarning(UserWarning):
+    """A legal input that is almost surely a mistake: the command goes on after one `warning: <message>` line."""
+
+
+def warn(message: str) -> None:
+    warnings.warn(message, SkedWarning, stacklevel=2)
+
+
+def show_warnings_as_lines() -> None:
+    """Print SkedWarnings as `warning: <message>` (the user's input, not our source line); others as before."""
+    previous = warnings.formatwarning
+    if getattr(previous, "sked_lines", False):
+        return
+
+    def format_warning(message, category, filename, lineno, line=None):
+        if issubclass(category, SkedWarning):
+            return f"warning: {message}\n"
+        return previous(message, category, filename, lineno, line)
+
+    format_warning.sked_lines = True
+    warnings.formatwarning = format_warning

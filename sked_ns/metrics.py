@@ -9,6 +9,8 @@ from torch import Tensor
 
 # Nine thresholds spread over [25, 225] / 255 (paper, Sec. 4.2).
 IOS_THRESHOLDS = tuple(np.linspace(25, 225, 9) / 255.0)
+SSIM_MIN_SIDE = 6
+"""torchmetrics' SSIM reflect-pads an image by half its 11-pixel window, which needs a side longer than that."""
 
 
 def intersection_over_sketch(alpha: Tensor, mask: Tensor, thresholds: Sequence[float] = IOS_THRESHOLDS) -> float:
@@ -27,6 +29,9 @@ def ssim_outside(edited: Tensor, base: Tensor, mask: Tensor) -> float:
     keep = ~mask.bool().reshape(edited.shape[:2])
     if not keep.any():
         raise ValueError("The sketch covers the whole image: nothing outside it to compare.")
+    if min(edited.shape[:2]) < SSIM_MIN_SIDE:
+        raise ValueError(f"SSIM of a {edited.shape[1]}x{edited.shape[0]} image is undefined (its 11-pixel window "
+                         f"needs at least {SSIM_MIN_SIDE} pixels a side).")
     to_nchw = lambda image: image.float().permute(2, 0, 1)[None]  # noqa: E731
     _, ssim_map = structural_similarity_index_measure(
         to_nchw(edited), to_nchw(base), data_range=1.0, return_full_image=True

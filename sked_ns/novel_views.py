@@ -39,7 +39,7 @@ from sked_ns.cameras import cameras_of
 from sked_ns.data_frame import IMPLIED_COLMAP_TRANSFORM, data_frame_transform, file_to_model  # noqa: F401 (re-exported)
 from sked_ns.data_frame import matrix_field as _matrix, number_field as _number
 from sked_ns.errors import SkedFileNotFoundError, SkedUserError
-from sked_ns.metrics import psnr_outside, ssim_outside
+from sked_ns.metrics import SSIM_MIN_SIDE, psnr_outside, ssim_outside
 from sked_ns.sketches import DataparserTransform
 
 KEEP_THRESHOLD = 0.95
@@ -316,7 +316,8 @@ def score_view(model, view: NovelView) -> Dict:
     entry: Dict = {"view": view.name, "keep_fraction": float(keep.float().mean())}
     if keep.any():
         entry["psnr_keep"] = psnr_outside(edit["rgb"], base["rgb"], ~keep)
-        entry["ssim_keep"] = ssim_outside(edit["rgb"], base["rgb"], ~keep)
+        if min(keep.shape) >= SSIM_MIN_SIDE:  # else left out, not made up
+            entry["ssim_keep"] = ssim_outside(edit["rgb"], base["rgb"], ~keep)
         entry["leak"] = float((edit["accumulation"] - base["accumulation"]).clamp_min(0)[keep].mean())
     if view.ground_truth is not None:
         truth = view.ground_truth

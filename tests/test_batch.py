@@ -144,12 +144,104 @@ def test_a_plan_expands_to_the_commands_a_user_would_type(fake_scene, tmp_path):
                                                  r"it from prompts"),
     ({"name": "a", "flags": "--output-dir=/x"}, r"--output-dir is not for the flags"),
     ({"name": "a b"}, r"edits\[0\] \(a b\)\.name: 'a b': letters, digits"),
+    ({"name": "a", "seeds": [1, 2, 1]}, r"edits\[0\] \(a\)\.seeds: 1 is listed twice"),
+    ({"name": "a", "prompts": ["a hat", "A hat!"]}, r"edits\[0\] \(a\)\.prompts: 'a hat' and 'A hat!' make the same job "
+                                                   r"name"),
+    # sked-eval's flags are read as sked-eval reads them when the plan is, not after hours of editing.
+    ({"name": "a", "eval": "--resolution 0"}, r"edits\[0\] \(a\)\.eval: '--resolution 0': .*--resolution: 0: must be "
+                                              r"at least 1"),
+    ({"name": "a", "eval": "--reslution 64"}, r"edits\[0\] \(a\)\.eval: .*unrecognized arguments: --reslution"),
+    ({"name": "a", "eval": "--cameras nowhere.json"}, r"edits\[0\] \(a\)\.eval: .*--cameras nowhere.json: no such camera"),
+    ({"name": "a", "eval": "--output m.json"}, r"edits\[0\] \(a\)\.eval: .*--output is not for a plan's eval flags"),
 ])
 def test_plan_mistakes_name_the_file_entry_and_field(fake_scene, tmp_path, edit, message):
     path = write_plan(tmp_path, fake_scene, [edit])
     with pytest.raises(SkedUserError, match=message) as refused:
         load_plan(path)
     assert str(path) in str(refused.value)
+
+
+@pytest.mark.parametrize("slurm, message", [
+    ({"time": 14400}, r"slurm\.time: 14400: write the time as a quoted string"),  # YAML's reading of 4:00:00
+    ({"time": "4 hours"}, r"slurm\.time: '4 hours': Slurm's time format"),
+    ({"max_parallel": 0}, r"slurm\.max_parallel: 0: a whole number >= 1"),
+    ({"mem": "lots"}, r"slurm\.mem: 'lots': memory per edit"),
+])
+def test_slurm_settings_are_checked_with_the_plan(fake_scene, tmp_path, slurm, message):
+    with pytest.raises(SkedUserError, match=message):
+        load_plan(write_plan(tmp_path, fake_scene, [{"name": "a"}], slurm=slurm))
+
+
+def test_a_sweep_is_counted_from_its_lists_and_a_huge_one_warned(fake_scene, tmp_path, capsys):
+    """10^5 jobs: known and dry-run without 10^5 job objects (memory, not time, is what is checked)."""
+    import tracemalloc
+
+    from sked_ns.batch.cli import main
+    from sked_ns.errors import SkedWarning
+
+    path = write_plan(tmp_path, fake_scene, [{"name": "e", "prompts": [f"prompt {i}" for i in range(1000)],
+                                              "seeds": list(range(100))}])
+    tracemalloc.start()
+    try:
+        plan = load_plan(path)
+        assert len(plan.jobs) == 100_000 and plan.jobs[-1].name == "e-prompt-999-s99"
+        assert plan.job("e-prompt-500-s7").prompt == "prompt 500"
+        with pytest.warns(SkedWarning, match=r"100000 jobs \(edits\[0\] \(e\): 1000 prompt\(s\) x 100 seed\(s\)\): "
+                                             r"100000 ns-train edits of 1000000000 iterations"), \
+                pytest.raises(SystemExit) as ended:
+            main([str(path), "--local", "--dry-run"])
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert ended.value.code == 0
+    assert peak < 20e6, f"{peak / 1e6:.0f} MB: the jobs were made, not counted"
+    out = capsys.readouterr().out.splitlines()
+    assert len(out) < 120 and out[-1].startswith("... and 99950 more edits like these"), out[-3:]
+    assert "99950 more, 100000 in all (100000 pending)" in "\n".join(out)
+    assert not plan.output.exists(), "a dry run writes nothing"
+
+
+def test_submitting_checks_the_output_and_the_command_line_first(fake_scene, tmp_path, monkeypatch):
+    from sked_ns.batch.cli import main
+    from sked_ns.errors import SkedWarning
+
+    blocker = tmp_path / "a_file"
+    blocker.write_text("")
+    path = write_plan(tmp_path / "p", fake_scene, [{"name": "e"}], output=str(blocker / "out"))
+    for command in ([str(path), "--local"], [str(path), "--slurm", "--dry-run"], ["report", str(path)],
+                    ["task", str(path), "--job", "e"]):
+        with pytest.raises(SkedUserError, match=rf"plan\.yml: output: {blocker}/out: {blocker} is a file"):
+            main(command)
+    path = write_plan(tmp_path / "q", fake_scene, [{"name": "e"}])
+    output = load_plan(path).output
+    for flags, message in ((["--slurm", "--time", "4h"], r"--time 4h: Slurm's time format"),
+                           (["--slurm", "--max-parallel", "0"], r"--max-parallel 0: a whole number >= 1"),
+                           (["--local", "--devices", "0,,1"], r"--devices 0,,1: GPUs separated by commas"),
+                           (["--local", "--devices", "0"], r"--devices 0: no GPU is visible here")):
+        monkeypatch.setenv("CUDA_VISIBLE_DEVICES", "")
+        with pytest.raises(SkedUserError, match=message):
+            main([str(path), *flags])
+    with pytest.warns(SkedWarning, match=r"--devices 0: for --local only"), pytest.raises(SystemExit):
+        main([str(path), "--slurm", "--dry-run", "--devices", "0"])
+    with pytest.warns(SkedWarning, match=r"--partition, --time: for --slurm only"), pytest.raises(SystemExit):
+        main([str(path), "--local", "--dry-run", "--partition", "gpu", "--time", "1:00:00"])
+    assert not output.exists(), "refused or dry runs: nothing written (the Slurm dry run made <output>/slurm)"
+
+
+def test_an_unwritable_output_is_one_error_line(fake_scene, tmp_path):
+    blocker = tmp_path / "a_file"
+    blocker.write_text("")
+    path = write_plan(tmp_path / "p", fake_scene, [{"name": "e"}], output=str(blocker / "out"))
+    result = sked_batch(path, "--local", timeout=300)
+    assert result.returncode != 0 and "Traceback" not in result.stderr, result.stderr[-3000:]
+    assert result.stderr.strip().splitlines()[-1].startswith(f"error: {path}: output: {blocker}/out: "), result.stderr
+
+
+def test_an_unreadable_plan_is_named(tmp_path):
+    plan = tmp_path / "plan.yml"
+    plan.write_bytes(b"\xff\xfe binary \x00")
+    with pytest.raises(SkedUserError, match=r"plan\.yml: cannot read the plan"):
+        load_plan(plan)
 
 
 def test_two_edits_making_the_same_job_are_refused(fake_scene, tmp_path):
@@ -374,6 +466,16 @@ def test_reports_are_written_one_at_a_time(fake_scene, tmp_path):
     second.join()
     assert [p.name for p in sorted(plan.output.iterdir()) if p.is_file()] == ["contact_sheet.png", "results.csv",
                                                                             "results.json"]
+
+
+def test_a_sweep_s_contact_sheet_stops_at_a_size_that_opens(fake_scene, tmp_path, monkeypatch):
+    import sked_ns.batch.report as report
+
+    monkeypatch.setattr(report, "SHEET_ROWS", 3)
+    plan = load_plan(write_plan(tmp_path, fake_scene, [{"name": "e", "seeds": list(range(5))}]))
+    paths = write_report(plan)
+    assert Image.open(paths["sheet"]).height == 4 * ROW_HEIGHT, "three jobs and a line saying two more"
+    assert len(list(csv.DictReader(paths["csv"].open()))) == 5
 
 
 # ---- real edits ---------------------------------------------------------------------------------

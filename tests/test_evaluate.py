@@ -3,9 +3,13 @@
 from __future__ import annotations
 
 import argparse
+import json
+import re
 import sys
 
+import numpy as np
 import pytest
+import torch
 
 from sked_ns.errors import SkedFileNotFoundError, SkedUserError
 from sked_ns.evaluate import edit_run_folder, orbit_count, output_paths, positive_int
@@ -62,3 +66,111 @@ def test_an_output_folder_that_cannot_be_written_is_refused_before_evaluating(tm
         output_paths(run, blocker / "metrics.json", None, overwrite=False)
     with pytest.raises(SkedUserError, match="--sheet"):
         output_paths(run, None, blocker / "sheet.png", overwrite=False)
+
+
+def fake_run(tmp_path):
+    """A folder sked-eval takes as an edited run: every check below must refuse before it is loaded."""
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "config.yml").write_text("")
+    return run
+
+
+def sked_eval(monkeypatch, *argv):
+    from sked_ns.evaluate import entrypoint
+
+    monkeypatch.setattr(sys, "argv", ["sked-eval", *map(str, argv)])
+    entrypoint()
+
+
+def test_a_target_is_read_up_front_and_never_ignored(tmp_path, monkeypatch):
+    from sked_ns.evaluate import evaluate
+
+    run, fresh = fake_run(tmp_path), tmp_path / "fresh" / "metrics.json"
+    broken = tmp_path / "broken.json"
+    broken.write_text("{not json")
+    ply = tmp_path / "model.ply"
+    ply.write_bytes(b"ply\nformat binary_little_endian 1.0\n\x00\xff\xfe")
+    no_images = tmp_path / "transforms.json"
+    no_images.write_text(json.dumps({"fl_x": 20, "w": 32, "h": 32, "frames": [{"transform_matrix": np.eye(4).tolist()}]}))
+    cases = [(["--cameras", "none", "--target", broken], r"--cameras none and --target \S+broken.json: the target is "
+                                                         r"scored at its own cameras, which --cameras none turns off"),
+             (["--cameras", "orbit", "--target", broken], r"--cameras orbit and --target"),
+             (["--target", broken], r"--target \S+broken.json: not readable as JSON"),
+             (["--target", ply], r"--target \S+model.ply: not readable as JSON"),
+             (["--target", no_images], r"--target \S+transforms.json: frame 0 has no 'file_path'; a target's frames")]
+    for flags, message in cases:
+        with pytest.raises(SkedUserError, match=message):
+            sked_eval(monkeypatch, run, "--output", fresh, *flags)
+    with pytest.raises(SkedUserError, match=r"--cameras none and --target"):
+        evaluate(run, cameras="none", target=broken)
+    assert not fresh.parent.exists() and sorted(p.name for p in run.iterdir()) == ["config.yml"], "nothing written"
+
+
+def test_every_flag_is_checked_before_the_edit_loads(tmp_path, monkeypatch):
+    from sked_ns.errors import SkedWarning
+
+    run, fresh = fake_run(tmp_path), tmp_path / "fresh" / "metrics.json"
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    cases = [(["--sketches", tmp_path / "nowhere"], r"--sketches \S+nowhere: .*no sketch set here"),
+             (["--base", tmp_path / "nowhere"], r"--base \S+nowhere: no such run folder"),
+             (["--cameras", "orbits"], r"--cameras orbits: no such camera file or folder"),
+             (["--prompt", "  "], r"--prompt '  ': empty; leave it out"),
+             (["--clip-model", tmp_path / "no-clip"], r"--clip-model \S+no-clip: no such folder"),
+             (["--device", "cuda"], r"--device cuda: no CUDA GPU is visible here; pass --device cpu"),
+             (["--device", "gpu0"], r"--device gpu0: not a device torch knows")]
+    for flags, message in cases:
+        with pytest.raises(SkedUserError, match=message):
+            sked_eval(monkeypatch, run, "--output", fresh, *flags)
+    with pytest.warns(SkedWarning, match=r"--cameras orbit:40: only 12 of the 40 orbit views are scored"), \
+            pytest.raises(SkedUserError, match=r"run/nerfstudio_models: missing"):  # then the fake run is refused
+        sked_eval(monkeypatch, run, "--output", fresh, "--cameras", "orbit:40")
+    with pytest.warns(SkedWarning, match=r"--clip-views 4000: that many renders"), pytest.raises(SkedUserError):
+        sked_eval(monkeypatch, run, "--output", fresh, "--clip-views", "4000")
+    assert not fresh.parent.exists() and sorted(p.name for p in run.iterdir()) == ["config.yml"], "nothing written"
+
+
+def test_overwrite_replaces_only_an_earlier_result_and_the_two_outputs_differ(tmp_path):
+    run = fake_run(tmp_path)
+    with pytest.raises(SkedUserError, match=r"--output \S+m.png and --sheet \S+m.png: the same file"):
+        output_paths(run, tmp_path / "m.png", None, overwrite=False)
+    with pytest.raises(SkedUserError, match=r"--sheet \S+sheet.txt: OpenCV writes no image with that ending"):
+        output_paths(run, None, tmp_path / "sheet.txt", overwrite=False)
+    with pytest.raises(SkedUserError, match=r"--output \S+: a folder"):
+        output_paths(run, tmp_path, None, overwrite=False)
+    with pytest.raises(SkedUserError, match=r"--output \S+config.yml: not an earlier sked-eval result"):
+        output_paths(run, run / "config.yml", run / "sheet.png", overwrite=True)
+    (run / "sked_eval.json").write_text(json.dumps({"edit_run": str(run)}))
+    assert output_paths(run, None, None, overwrite=True)[0] == run / "sked_eval.json"
+
+
+@pytest.fixture(scope="module")
+def tiny_edit(scene, tmp_path_factory):
+    """A two-step reference-guided edit of the demo base at 16 px (what sked-eval loads and renders)."""
+    from sked_ns.edit_run import edit_config, run_edit
+
+    config = edit_config(scene["base"], scene["data"], scene["sketches"], tmp_path_factory.mktemp("edit"), iterations=2,
+                         guidance_resolution=16, silhouette_resolution=16, steps_per_save=100)
+    return run_edit(config).base_dir
+
+
+def test_another_base_prints_no_nan_and_says_why_its_region_ios_is_missing(scene, tiny_edit, tmp_path, monkeypatch,
+                                                                           capsys):
+    output = tmp_path / "metrics.json"
+    sked_eval(monkeypatch, tiny_edit / "config.yml", "--base", scene["base"], "--output", output, "--resolution", 16,
+              "--cameras", "none", "--clip-views", 1, "--clip-resolution", 16)
+    printed = capsys.readouterr().out
+    assert "nan" not in printed.lower(), printed
+    assert re.search(r"region IoS \d\.\d{3} \(base n/a: --base's renders carry no preservation weight", printed), printed
+    metrics = json.loads(output.read_text())
+    assert "ios_region_base" not in metrics["mean"] and metrics["ios_region_base"].startswith("n/a: --base's renders")
+    assert 0 <= metrics["mean"]["ios_region"] <= 1
+
+
+def test_only_a_sked_edit_is_evaluated_and_not_against_itself(scene, tiny_edit):
+    from sked_ns.evaluate import evaluate
+
+    with pytest.raises(SkedUserError, match=r"sked-eval \S+: a 'nerfacto' run, not a SKED edit"):
+        evaluate(scene["base"], cameras="none")
+    with pytest.raises(SkedUserError, match=r"--base \S+: that is the edit itself"):
+        evaluate(tiny_edit, base_run=tiny_edit, cameras="none")

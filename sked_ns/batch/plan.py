@@ -22,11 +22,15 @@ later submission finds it again. Every mistake is an error naming the plan file,
 
 from __future__ import annotations
 
+import bisect
 import re
 import shlex
-from dataclasses import dataclass, field
+import tempfile
+from collections import abc
+from dataclasses import dataclass, field, replace
+from functools import cached_property
 from pathlib import Path
-from typing import Dict, List, Optional, Tuple
+from typing import Dict, Iterator, List, Optional, Sequence, Tuple
 
 from sked_ns.errors import SkedFileNotFoundError, SkedUserError
 
@@ -49,6 +53,14 @@ RUN_TIMESTAMP = "run"
 SUBCOMMAND = re.compile(r"^[A-Za-z_][\w.-]*:[\w-]+$")
 """`pipeline.model.guidance:reference`: a tyro subcommand, which must follow every plain flag."""
 SAFE_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]*$")
+PLAUSIBLE_JOBS = 1000
+"""More jobs than this in one plan is rarely meant (and more than Slurm's default MaxArraySize, 1001, takes in one
+array): the plan is run, after a warning that says how many edits it makes."""
+SHOWN_NAMES = 10
+"""Job names listed in a message at most (a sweep has thousands)."""
+SLURM_TIME = re.compile(r"^(\d+|\d+:\d+|\d+:\d+:\d+|\d+-\d+|\d+-\d+:\d+|\d+-\d+:\d+:\d+|UNLIMITED|INFINITE)$")
+"""sbatch --time's formats: minutes, minutes:seconds, hours:minutes:seconds, days-hours[:minutes[:seconds]]."""
+SLURM_MEMORY = re.compile(r"^\d+[KMGTkmgt]?$")
 
 
 @dataclass(frozen=True)
@@ -110,19 +122,97 @@ class Job:
         return ["sked-eval", str(self.run_dir / "config.yml"), "--overwrite", *(self.eval_flags or ())]
 
 
+@dataclass(frozen=True)
+class Edit:
+    """One edit of the plan, checked: a job per (prompt, seed), made when asked for, so a sweep's size is known
+    from its lists and a million jobs are not a million objects."""
+
+    label: str
+    """How errors name it: `edits[0] (sphere-hat)`."""
+    prompts: Tuple[Optional[str], ...]
+    seeds: Tuple[Optional[int], ...]
+    template: Job
+    """Its jobs' common fields (name: the edit's; no prompt, no seed)."""
+
+    def __len__(self) -> int:
+        return len(self.prompts) * len(self.seeds)
+
+    @property
+    def name(self) -> str:
+        return self.template.edit
+
+    @cached_property
+    def parts(self) -> Tuple[List[str], List[str]]:
+        """What each prompt and each seed adds to the edit's name to make a job's."""
+        return ([f"-{slug(p)}" if p is not None else "" for p in self.prompts],
+                [f"-s{seed}" if seed is not None else "" for seed in self.seeds])
+
+    def names(self) -> Iterator[str]:
+        prompts, seeds = self.parts
+        return (self.name + prompt + seed for prompt in prompts for seed in seeds)
+
+    def job(self, index: int) -> Job:
+        prompt, seed = divmod(index, len(self.seeds))
+        prompts, seeds = self.parts
+        return replace(self.template, name=self.name + prompts[prompt] + seeds[seed], prompt=self.prompts[prompt],
+                       seed=self.seeds[seed])
+
+
+class Jobs(abc.Sequence):
+    """The plan's jobs in order (edit, prompt, seed), each made when it is asked for."""
+
+    def __init__(self, edits: Sequence[Edit]):
+        self.edits = list(edits)
+        self._ends = []
+        for edit in self.edits:
+            self._ends.append((self._ends[-1] if self._ends else 0) + len(edit))
+
+    def __len__(self) -> int:
+        return self._ends[-1] if self._ends else 0
+
+    def __getitem__(self, index):
+        if isinstance(index, slice):
+            return [self[i] for i in range(*index.indices(len(self)))]
+        if index < 0:
+            index += len(self)
+        if not 0 <= index < len(self):
+            raise IndexError(index)
+        which = bisect.bisect_right(self._ends, index)
+        return self.edits[which].job(index - (self._ends[which - 1] if which else 0))
+
+    def __iter__(self) -> Iterator[Job]:
+        for edit in self.edits:
+            for index in range(len(edit)):
+                yield edit.job(index)
+
+    def names(self) -> Iterator[str]:
+        """The jobs' names in order, without making the jobs."""
+        for edit in self.edits:
+            yield from edit.names()
+
+
 @dataclass
 class Plan:
     path: Path
     name: str
     output: Path
-    jobs: List[Job]
+    jobs: Sequence[Job]
     slurm: Dict[str, object] = field(default_factory=dict)
 
     def job(self, name: str) -> Job:
-        for job in self.jobs:
-            if job.name == name:
-                return job
-        raise SkedUserError(f"{self.path}: no job named {name!r}; its jobs are: {', '.join(j.name for j in self.jobs)}.")
+        names = self.jobs.names() if isinstance(self.jobs, Jobs) else (job.name for job in self.jobs)
+        for index, candidate in enumerate(names):
+            if candidate == name:
+                return self.jobs[index]
+        raise SkedUserError(f"{self.path}: no job named {name!r}; its jobs are: {some_names(self)} "
+                            f"(sked-batch status {self.path} lists them all).")
+
+
+def some_names(plan: Plan) -> str:
+    """The plan's first few job names, and how many more there are."""
+    names = [job.name for job in plan.jobs[:SHOWN_NAMES]]
+    more = len(plan.jobs) - len(names)
+    return ", ".join(names) + (f" and {more} more" if more > 0 else "")
 
 
 def split_flags(tokens: List[str]) -> Tuple[List[str], Dict[str, List[str]]]:
@@ -164,10 +254,16 @@ def slug(text: str, limit: int = 40) -> str:
 
 
 def read_plan_file(path: Path) -> dict:
+    if path.is_dir():
+        raise SkedUserError(f"sked-batch {path}: a folder; pass the plan file (YAML or TOML) itself.")
     if not path.is_file():
         raise SkedFileNotFoundError(f"sked-batch {path}: no such plan file (a YAML or TOML file; see the README, "
                                     "'Many edits: sked-batch').")
-    text = path.read_text()
+    try:
+        text = path.read_text()
+    except (OSError, UnicodeDecodeError) as error:
+        raise SkedUserError(f"sked-batch {path}: cannot read the plan ({error}); a plan is a YAML or TOML text file.") \
+            from error
     try:
         if path.suffix == ".toml":
             try:
@@ -223,7 +319,8 @@ class _Checker:
 
 
 def load_plan(path: Path, check_paths: bool = True) -> Plan:
-    """Read and check a plan; `check_paths`: the bases, data and sketch sets exist (before submitting)."""
+    """Read and check a plan; `check_paths`: the bases, data, sketch sets and the files `eval:` flags name exist
+    (before submitting). Its jobs are counted from its lists, not made (see Jobs)."""
     path = Path(path).resolve()
     data, check = read_plan_file(path), _Checker(path)
     check.unknown("the plan", data, PLAN_FIELDS)
@@ -232,6 +329,8 @@ def load_plan(path: Path, check_paths: bool = True) -> Plan:
     if not isinstance(name, str) or not SAFE_NAME.match(name):
         check.fail("name", f"{name!r}: letters, digits, '.', '_' and '-' only (it names folders and Slurm jobs).")
     output = check.folder("output", data.get("output", f"outputs/{name}"), root)
+    if output.exists() and not output.is_dir():
+        check.fail("output", f"{output} is a file; the output is a folder the jobs' folders go in.")
     defaults = data.get("defaults") or {}
     if not isinstance(defaults, dict):
         check.fail("defaults", "a mapping of edit fields (preset, flags, seeds, ...).")
@@ -243,21 +342,126 @@ def load_plan(path: Path, check_paths: bool = True) -> Plan:
     if not isinstance(slurm, dict):
         check.fail("slurm", f"a mapping of {', '.join(SLURM_FIELDS)}.")
     check.unknown("slurm", slurm, SLURM_FIELDS)
+    for key, value in slurm.items():
+        problem = slurm_problem(key, value)
+        if problem:
+            check.fail(f"slurm.{key}", f"{value!r}: {problem}")
 
-    jobs: List[Job] = []
-    seen: Dict[str, str] = {}
+    checked: List[Edit] = []
     for index, edit in enumerate(edits):
         if not isinstance(edit, dict):
             check.fail(f"edits[{index}]", "an edit is a mapping with base, data, sketches, prompts, ...")
         label = f"edits[{index}]" + (f" ({edit['name']})" if isinstance(edit.get("name"), str) else "")
         check.unknown(label, edit, EDIT_FIELDS)
-        for new in _edit_jobs(check, label, index, {**defaults, **edit}, defaults, edit, root, output, check_paths):
-            if new.name in seen:
-                check.fail(label, f"job {new.name!r} is also made by {seen[new.name]}: give the edits different names "
-                                  "(or prompts that differ in their words).")
-            seen[new.name] = label
-            jobs.append(new)
-    return Plan(path=path, name=name, output=output, jobs=jobs, slurm=slurm)
+        checked.append(_edit(check, label, index, {**defaults, **edit}, defaults, edit, root, output, check_paths))
+    _check_job_names(check, checked)
+    return Plan(path=path, name=name, output=output, jobs=Jobs(checked), slurm=slurm)
+
+
+def _check_job_names(check: _Checker, edits: List[Edit]) -> None:
+    """Two jobs of one name would share a folder. A job's name is its edit's, its prompt's words and its seed
+    (`-s<seed>`, read from the name's end), so within an edit distinct words and distinct seeds make distinct
+    names and a sweep is checked from its lists; only a seedless job among seeded ones (its words may end as a
+    seed does), and edits whose names overlap, are compared name by name."""
+    for edit in edits:
+        prompts, seeds = edit.parts
+        for field_name, values, parts in (("prompts", edit.prompts, prompts), ("seeds", edit.seeds, seeds)):
+            first: Dict[str, int] = {}
+            for index, part in enumerate(parts):
+                if part in first:
+                    other = values[first[part]]
+                    check.fail(f"{edit.label}.{field_name}", f"{values[index]!r} is listed twice." if other == values[index]
+                               else f"{other!r} and {values[index]!r} make the same job name ({edit.name}{part}...): "
+                                    "prompts must differ in the words of their first 40 characters.")
+                first[part] = index
+        if "" in seeds and len(seeds) > 1:
+            _compare_names(check, edit, edit)
+    for later, second in enumerate(edits):
+        for first_edit in edits[:later]:
+            a, b = sorted((first_edit.name, second.name), key=len)
+            if a == b or b.startswith(a + "-"):
+                _compare_names(check, first_edit, second)
+
+
+def _compare_names(check: _Checker, first: Edit, second: Edit) -> None:
+    seen = set() if first is second else set(first.names())
+    for name in second.names():
+        if name in seen:
+            check.fail(second.label, f"job {name!r} is also made by {first.label}: give the edits different names "
+                                     "(or prompts that differ in their words)." if first is not second else
+                       f"job {name!r} is made twice (a prompt's words end as a seed's -s<seed> does): reword it.")
+        if first is second:
+            seen.add(name)
+
+
+def slurm_problem(key: str, value) -> Optional[str]:
+    """What a Slurm setting (the plan's `slurm:` or its flag) must be, when `value` is not that; else None."""
+    whole = isinstance(value, int) and not isinstance(value, bool)
+    if key in ("partition", "account"):
+        ok = isinstance(value, str) and value.strip() and not any(c.isspace() for c in value)
+        return None if ok else f"a Slurm {key} name."
+    if key == "time":
+        if whole:
+            return ("write the time as a quoted string (\"4:00:00\", or \"240\" minutes): YAML reads an unquoted "
+                    "4:00:00 as the number 14400, which Slurm would take as minutes.")
+        return None if isinstance(value, str) and SLURM_TIME.match(value) else (
+            "Slurm's time format, e.g. 4:00:00 (hours:minutes:seconds), 1-00:00:00 or 240 (minutes).")
+    if key == "mem":
+        ok = (whole and value > 0) or (isinstance(value, str) and SLURM_MEMORY.match(value))
+        return None if ok else "memory per edit as Slurm writes it, e.g. 32G or 32000 (megabytes)."
+    if key in ("gpus", "cpus_per_task", "max_parallel"):
+        least = 0 if key == "gpus" else 1
+        return None if whole and value >= least else f"a whole number >= {least}."
+    if key == "sbatch_args":
+        ok = isinstance(value, str) or (isinstance(value, list) and all(isinstance(v, str) for v in value))
+        return None if ok else "sbatch options, a string or a list of strings (--qos=high)."
+    return None
+
+
+def job_iterations(job: Job) -> int:
+    """The edit's iterations: its flags' --max-num-iterations, else its preset's."""
+    for index, token in enumerate(job.flags):
+        if token.startswith("--max-num-iterations"):
+            value = token.partition("=")[2] or (job.flags[index + 1] if index + 1 < len(job.flags) else "")
+            if value.isdigit():
+                return int(value)
+    from importlib import resources
+
+    import yaml
+
+    preset = yaml.safe_load((resources.files("sked_ns.configs") / f"{job.preset}.yml").read_text())
+    return int(preset["iterations"])
+
+
+def size_warning(plan: Plan) -> Optional[str]:
+    """What a plan of more than PLAUSIBLE_JOBS jobs means (edits, iterations, evaluations), or None."""
+    if not isinstance(plan.jobs, Jobs) or len(plan.jobs) <= PLAUSIBLE_JOBS:
+        return None
+    edits = plan.jobs.edits
+    largest = sorted(edits, key=len, reverse=True)[:3]
+    sources = "; ".join(f"{e.label}: {len(e.prompts)} prompt(s) x {len(e.seeds)} seed(s)" for e in largest)
+    iterations = sum(len(edit) * job_iterations(edit.template) for edit in edits)
+    evaluations = sum(len(edit) for edit in edits if edit.template.eval_flags is not None)
+    return (f"{plan.path}: {len(plan.jobs)} jobs ({sources}{'; ...' if len(edits) > 3 else ''}): {len(plan.jobs)} "
+            f"ns-train edits of {iterations} iterations in all, and {evaluations} sked-eval runs. More than "
+            f"{PLAUSIBLE_JOBS} is rarely meant (nor taken in one array by Slurm's default MaxArraySize); check the "
+            "prompts and seeds lists, or split the plan.")
+
+
+def output_problem(folder: Path) -> Optional[str]:
+    """Why `folder` cannot be made or written in, found by trying in the nearest folder that exists (a probe file
+    made and removed there: nothing is left, so a dry run may ask too); None: it can."""
+    existing = Path(folder)
+    while not existing.exists() and existing != existing.parent:
+        existing = existing.parent
+    if not existing.is_dir():
+        return f"{existing} is a file, not a folder."
+    try:
+        with tempfile.NamedTemporaryFile(dir=existing, prefix=".sked-write-probe-"):
+            pass
+    except OSError as error:
+        return f"cannot write in {existing} ({error.strerror or error})."
+    return None
 
 
 def _list_field(check: _Checker, where: str, entry: dict, plural: str, singular: str, kind) -> list:
@@ -285,7 +489,7 @@ def _seed(value) -> bool:
     return isinstance(value, int) and not isinstance(value, bool) and value >= 0
 
 
-def _edit_jobs(check, label, index, entry, defaults, edit, root, output, check_paths) -> List[Job]:
+def _edit(check, label, index, entry, defaults, edit, root, output, check_paths) -> Edit:
     name = edit.get("name", f"edit{index}")
     if not isinstance(name, str) or not SAFE_NAME.match(name):
         check.fail(f"{label}.name", f"{name!r}: letters, digits, '.', '_' and '-' only (it names the job folders).")
@@ -319,19 +523,25 @@ def _edit_jobs(check, label, index, entry, defaults, edit, root, output, check_p
     if not dataparser or dataparser[0].startswith("-"):
         check.fail(f"{label}.dataparser", f"{' '.join(dataparser)!r}: the base's dataparser subcommand first "
                                           "(nerfstudio-data, instant-ngp-data, ...), then its flags.")
-    eval_value = entry.get("eval", True)
-    if eval_value is False:
-        eval_flags = None
-    elif eval_value is True:
-        eval_flags = ()
-    else:
-        eval_flags = check.tokens(f"{label}.eval", eval_value)
+    eval_flags = _eval_flags(check, f"{label}.eval", entry.get("eval", True), check_paths)
     prompts = _list_field(check, label, entry, "prompts", "prompt", _prompt)
     seeds = _list_field(check, label, entry, "seeds", "seed", _seed)
-    jobs = []
-    for prompt in prompts:
-        for seed in seeds:
-            job_name = name + (f"-{slug(prompt)}" if prompt is not None else "") + (f"-s{seed}" if seed is not None else "")
-            jobs.append(Job(name=job_name, edit=name, prompt=prompt, seed=seed, preset=preset, base=base, data=data,
-                            sketches=sketches, flags=flags, dataparser=dataparser, eval_flags=eval_flags, output=output))
-    return jobs
+    template = Job(name=name, edit=name, prompt=None, seed=None, preset=preset, base=base, data=data, sketches=sketches,
+                   flags=flags, dataparser=dataparser, eval_flags=eval_flags, output=output)
+    return Edit(label=label, prompts=tuple(prompts), seeds=tuple(seeds), template=template)
+
+
+def _eval_flags(check: _Checker, where: str, value, check_files: bool) -> Optional[Tuple[str, ...]]:
+    """The `sked-eval` flags of `eval:` (None: no evaluation), read as sked-eval reads them, so a typo is refused
+    now and not after the edit; `check_files`: the files they name exist."""
+    if value is False:
+        return None
+    flags = () if value is True else check.tokens(where, value)
+    if flags and check_files:
+        from sked_ns.evaluate import check_eval_flags
+
+        try:
+            check_eval_flags(flags)
+        except SkedUserError as error:
+            check.fail(where, f"{' '.join(flags)!r}: {error}")
+    return flags

@@ -20,6 +20,8 @@ from sked_ns.run_lock import writing
 ROW_HEIGHT = 128
 """Contact-sheet row height in pixels (each job's renders are scaled to it)."""
 LABEL_WIDTH = 260
+SHEET_ROWS = 500
+"""Jobs on the contact sheet at most (a sweep's would be an image too tall to open); the table has them all."""
 
 
 def eval_metrics(run_dir: Path) -> Dict[str, object]:
@@ -116,12 +118,20 @@ def _label(status: JobStatus, metrics: Dict[str, object]):
     return tile
 
 
+def _note(text: str):
+    from PIL import Image, ImageDraw
+
+    tile = Image.new("RGB", (LABEL_WIDTH, ROW_HEIGHT), (255, 255, 255))
+    ImageDraw.Draw(tile).multiline_text((6, 6), text.replace(" (", "\n("), fill=(0, 0, 0), spacing=4)
+    return tile
+
+
 def contact_sheet(statuses: List[JobStatus]):
     """A row per job: its name, state and metrics, then its sketch views (base | edit | overlay)."""
     from PIL import Image
 
     rows = []
-    for status in statuses:
+    for status in statuses[:SHEET_ROWS]:
         renders = _sketch_rows(status.job.run_dir) if status.state == "done" else None
         label = _label(status, eval_metrics(status.job.run_dir) if renders is not None else {})
         width = LABEL_WIDTH + (renders.width if renders is not None else 0)
@@ -130,6 +140,8 @@ def contact_sheet(statuses: List[JobStatus]):
         if renders is not None:
             row.paste(renders, (LABEL_WIDTH, 0))
         rows.append(row)
+    if len(statuses) > SHEET_ROWS:
+        rows.append(_note(f"... {len(statuses) - SHEET_ROWS} more jobs (results.csv lists them all)"))
     sheet = Image.new("RGB", (max(r.width for r in rows), ROW_HEIGHT * len(rows)), (200, 200, 200))
     for i, row in enumerate(rows):
         sheet.paste(row, (0, i * ROW_HEIGHT))
