@@ -13,6 +13,7 @@ import signal
 import socket
 import subprocess
 import sys
+import types
 import threading
 from pathlib import Path
 
@@ -214,7 +215,11 @@ def test_sked_eval_leaves_outputs_another_sked_eval_writes(tmp_path, monkeypatch
     (run / "config.yml").write_text("method_name: sked\n")
     other = holding(run / "sked_eval.json", WRITE)
     monkeypatch.setattr(evaluate, "evaluate", lambda *args: pytest.fail("evaluated while another sked-eval writes"))
-    monkeypatch.setattr(sys, "argv", ["sked-eval", str(run / "config.yml")])
+    # The inputs pass (tests/test_evaluate.py checks them): only the outputs' writer is under test here.
+    monkeypatch.setattr(evaluate, "edit_scene", lambda run: types.SimpleNamespace(model_config=None))
+    monkeypatch.setattr(evaluate, "checked_sketches", lambda *args: (None, None))
+    monkeypatch.setattr(evaluate, "check_sketch_masks", lambda *args: None)
+    monkeypatch.setattr(sys, "argv", ["sked-eval", str(run / "config.yml"), "--device", "cpu"])
     try:
         with pytest.raises(run_lock.WriterBusy, match=rf"sked_eval\.json: another process is writing to it \(pid "
                                                       rf"{other.pid} .*pass another --output"):
