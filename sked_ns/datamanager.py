@@ -22,6 +22,7 @@ from nerfstudio.utils.rich_utils import CONSOLE
 
 from sked_ns.cameras import cameras_of
 from sked_ns.edit_box import EditBox
+from sked_ns.errors import SkedUserError
 from sked_ns.random_views import ELEVATION_RANGE_DEG, FOV_RANGE_DEG, RandomViewSampler, focal_from_fov
 from sked_ns.sketches import (SKETCHES_JSON, DataparserTransform, SketchSet, check_declared_frame, load_sketch_set,
                               sketch_view_at)
@@ -58,10 +59,25 @@ TRAINING_CAMERAS = "sked_training_cameras"
 sketch set's declared frame against."""
 
 
+def outputs_transform(outputs) -> DataparserTransform:
+    """The transform a dataparser applied (its dataparser_transforms.json), from its outputs."""
+    return DataparserTransform(outputs.dataparser_transform.numpy().astype(np.float64), float(outputs.dataparser_scale))
+
+
+def sketch_frame_metadata(dataparser_config, outputs) -> Dict:
+    """The train dataset's metadata the model loads the sketch set with, from the train dataparser outputs: the
+    data -> model frame and the training cameras' positions with the scene box centre."""
+    from sked_ns.data_frame import data_frame_transform
+
+    return {SKETCH_FRAME: data_frame_transform(dataparser_config, outputs_transform(outputs)),
+            TRAINING_CAMERAS: (outputs.cameras.camera_to_worlds[:, :, 3].numpy().astype(np.float64),
+                               outputs.scene_box.get_center().numpy().astype(np.float64))}
+
+
 def model_frame_sketches(sketches: Optional[Path], metadata: Dict) -> SketchSet:
     """The sketch set in the model's frame; `metadata` is the train dataset's, as nerfstudio hands it to the model."""
     if sketches is None:
-        raise ValueError("SKED needs a sketch set: pass --sketches <folder with sketches.json>.")
+        raise SkedUserError("SKED needs a sketch set: pass --sketches <folder with sketches.json>.")
     if SKETCH_FRAME not in metadata:
         raise ValueError("A SKED model is set up by SkedPipeline with a SkedDataManager (they know the data's frame).")
     sketch_set = load_sketch_set(sketches)
@@ -77,15 +93,11 @@ class SkedDataManager(VanillaDataManager):
     def __init__(self, *args, **kwargs):
         super().__init__(*args, **kwargs)
         # nerfstudio hands the train dataset's metadata to the model: the sketch set needs this frame.
-        self.train_dataset.metadata[SKETCH_FRAME] = self.data_frame_transform
-        self.train_dataset.metadata[TRAINING_CAMERAS] = (
-            self.train_dataset.cameras.camera_to_worlds[:, :, 3].numpy().astype(np.float64),
-            self.train_dataparser_outputs.scene_box.get_center().numpy().astype(np.float64))
+        self.train_dataset.metadata.update(sketch_frame_metadata(self.config.dataparser, self.train_dataparser_outputs))
 
     @property
     def dataparser_transform(self) -> DataparserTransform:
-        outputs = self.train_dataparser_outputs
-        return DataparserTransform(outputs.dataparser_transform.numpy().astype(np.float64), float(outputs.dataparser_scale))
+        return outputs_transform(self.train_dataparser_outputs)
 
     @property
     def data_frame_transform(self) -> DataparserTransform:

@@ -147,12 +147,12 @@ def compute_edit_box(views: Sequence[SketchView], scene_box: Optional[np.ndarray
             if not _feasible([halfspaces[i], halfspaces[j]], scene_box)
         ]
         detail = "; ".join(apart) if apart else "no single region lies inside every view's sketch"
-        raise ValueError(
+        raise SkedUserError(
             f"The sketches do not intersect in 3D ({detail}). Each mask must cover the same region seen "
             "from its own viewpoint: check the masks and that the poses are in the stated 'frame'."
         )
     if any(s != 0 for s in status):
-        raise ValueError(
+        raise SkedUserError(
             "The sketch frusta meet in an unbounded region (the views look along nearly the same line). "
             "Sketch from viewpoints further apart, or give the scene box to clip to."
         )
