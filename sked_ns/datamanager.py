@@ -162,21 +162,28 @@ class SkedDataManager(VanillaDataManager):
 
     def photo_view(self, step: int) -> Dict:
         """The base's training photo `step` mod their number, whole, with its camera, for a model that renders
-        images (splats): {"camera", "image" (H, W, C) float, "index"}, its longer side at most the guidance
-        resolution (area-averaged), cached."""
-        dataset = self.train_dataset
-        index = step % len(dataset)
+        images (splats): {"camera", "image" (H, W, C) float, "index", "native"}, its longer side at most the
+        guidance resolution (area-averaged), cached; "native"() gives the same photo at its own resolution, the one
+        the base was trained at (uncached)."""
+        index = step % len(self.train_dataset)
         cache = self.__dict__.setdefault("_photo_views", {})
         if index not in cache:
-            camera = dataset.cameras[index:index + 1]
-            camera.rescale_output_resolution(min(1.0, self.guidance_resolution / float(max(camera.width, camera.height))))
-            size = (int(camera.height), int(camera.width))
-            image = dataset.get_image_float32(index)
-            if tuple(image.shape[:2]) != size:
-                image = torch.nn.functional.interpolate(image.permute(2, 0, 1)[None], size=size,
-                                                        mode="area")[0].permute(1, 2, 0)
-            cache[index] = {"camera": camera.to(self.device), "image": image.to(self.device), "index": index}
+            cache[index] = {**self._photo_at(index, self.guidance_resolution), "index": index,
+                            "native": lambda: self._photo_at(index, None)}
         return cache[index]
+
+    def _photo_at(self, index: int, longer_side: Optional[int]) -> Dict:
+        """Training photo `index` and its camera, area-averaged down to `longer_side` (None: as it is)."""
+        dataset = self.train_dataset
+        camera = dataset.cameras[index:index + 1]
+        if longer_side is not None:
+            camera.rescale_output_resolution(min(1.0, longer_side / float(max(camera.width, camera.height))))
+        size = (int(camera.height), int(camera.width))
+        image = dataset.get_image_float32(index)
+        if tuple(image.shape[:2]) != size:
+            image = torch.nn.functional.interpolate(image.permute(2, 0, 1)[None], size=size,
+                                                    mode="area")[0].permute(1, 2, 0)
+        return {"camera": camera.to(self.device), "image": image.to(self.device)}
 
 
 def _concatenate(bundles) -> RayBundle:
