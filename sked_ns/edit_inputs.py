@@ -57,7 +57,11 @@ def check_sketches_in_data(config) -> None:
 
     datamanager, model = config.pipeline.datamanager, config.pipeline.model
     dataparser = copy.deepcopy(datamanager.dataparser)
-    dataparser.data = Path(datamanager.data or config.data or dataparser.data)  # as VanillaDataManager sets it
+    data = datamanager.data or config.data or dataparser.data  # as VanillaDataManager sets it
+    if data is None:
+        raise SkedUserError("no --data: an edit reads the base's photos through the base's dataparser, typed after "
+                            "every other flag (e.g. `nerfstudio-data --data <folder>`).")
+    dataparser.data = Path(data)
     name = dataparser_name(dataparser)
     with reading(f"--data {dataparser.data}", f"Is it a dataset {name} reads? (give the dataparser after every "
                  "other flag, e.g. `nerfstudio-data --data <folder>`, as the base was trained)"):
