@@ -15,7 +15,6 @@ y-up to z-up.
 
 from __future__ import annotations
 
-import argparse
 import io
 import pickle
 from pathlib import Path
@@ -26,7 +25,8 @@ import numpy as np
 import torch
 
 from sked_ns.cameras import check_camera_to_world
-from sked_ns.errors import SkedUserError
+from sked_ns.edit_box import check_sketches_meet
+from sked_ns.errors import ArgumentParser, SkedFileNotFoundError, SkedUserError, check_writable_folder
 from sked_ns.sketches import SKETCHES_JSON, SketchSet, SketchView, fill_scribbles, save_sketch_set
 
 # y-up world (theirs) -> z-up world (nerfstudio's): (x, y, z) -> (x, -z, y).
@@ -65,7 +65,7 @@ def read_authors_meta(path: Path) -> tuple[np.ndarray, np.ndarray]:
         poses = meta["poses"]
         poses = poses.detach().cpu().numpy() if isinstance(poses, torch.Tensor) else np.asarray(poses)
     except (OSError, pickle.UnpicklingError, KeyError, ValueError, TypeError, EOFError) as error:
-        raise ValueError(f"{path}: not a readable SKED meta_data.pkl with 'intrinsics' and 'poses' ({error}).") from error
+        raise SkedUserError(f"{path}: not a readable SKED meta_data.pkl with 'intrinsics' and 'poses' ({error}).") from error
     return intrinsics, poses.astype(np.float64).reshape(-1, 4, 4)
 
 
@@ -76,7 +76,7 @@ def authors_pose_to_nerfstudio(pose: np.ndarray, where: str) -> np.ndarray:
     """
     rotation, origin = pose[:3, :3], pose[:3, 3]
     if not np.isclose(np.linalg.det(rotation), -1.0, atol=1e-3):
-        raise ValueError(f"{where}: expected the authors' mirrored pose (det R = -1), got det {np.linalg.det(rotation):.3f}.")
+        raise SkedUserError(f"{where}: expected the authors' mirrored pose (det R = -1), got det {np.linalg.det(rotation):.3f}.")
     # Mirror x (proper rotation), then OpenCV -> OpenGL (flip y and z): R diag(-1, -1, -1).
     opengl = np.concatenate([-rotation, origin[:, None]], axis=1)
     return check_camera_to_world(Y_UP_TO_Z_UP @ opengl, where)
@@ -87,23 +87,26 @@ def import_authors_sketches(folder: Path) -> SketchSet:
     folder = Path(folder)
     meta_path = folder / "meta_data.pkl"
     if not meta_path.is_file():
-        raise FileNotFoundError(f"{meta_path}: missing; the authors' layout has meta_data.pkl beside sketches/.")
+        raise SkedFileNotFoundError(f"{meta_path}: missing; the authors' layout has meta_data.pkl beside sketches/.")
     intrinsics, poses = read_authors_meta(meta_path)
     canvases = sorted((folder / "sketches").glob("*.png"))
     if len(canvases) != len(poses):
-        raise ValueError(f"{folder / 'sketches'}: {len(canvases)} canvases for {len(poses)} poses in {meta_path}.")
+        raise SkedUserError(f"{folder / 'sketches'}: {len(canvases)} canvases for {len(poses)} poses in {meta_path}.")
+    if len(canvases) < 2:
+        raise SkedUserError(f"{folder / 'sketches'}: {len(canvases)} canvas(es); a sketch set needs at least two "
+                            "views from different viewpoints.")
     fx, fy, cx, cy = intrinsics
     views = []
     for canvas_path, pose in zip(canvases, poses):
         canvas = cv2.imread(str(canvas_path), cv2.IMREAD_UNCHANGED)
         if canvas is None or canvas.ndim != 3 or canvas.shape[2] != 4:
-            raise ValueError(f"{canvas_path}: expected an RGBA canvas (a black blob on transparent).")
+            raise SkedUserError(f"{canvas_path}: expected an RGBA canvas (a black blob on transparent).")
         # Their rule: composite over white, dark pixels are the sketch.
         alpha = canvas[..., 3:4].astype(np.float64) / 255.0
         gray = (canvas[..., :3].astype(np.float64) * alpha + 255.0 * (1.0 - alpha)).mean(axis=2)
         mask = fill_scribbles(gray < 128)
         if not mask.any():
-            raise ValueError(f"{canvas_path}: the canvas holds no sketch.")
+            raise SkedUserError(f"{canvas_path}: the canvas holds no sketch.")
         width = mask.shape[1]
         views.append(
             SketchView(
@@ -121,7 +124,7 @@ def import_authors_sketches(folder: Path) -> SketchSet:
 
 def entrypoint(argv: Optional[List[str]] = None) -> None:
     """`sked-import-authors <their folder> <our folder>`."""
-    parser = argparse.ArgumentParser(description="Convert the SKED authors' sketch layout into a sked_ns sketch set.")
+    parser = ArgumentParser(prog="sked-import-authors", description="Convert the SKED authors' sketch layout into a sked_ns sketch set.")
     parser.add_argument("source", type=Path, help="folder with meta_data.pkl and sketches/")
     parser.add_argument("output", type=Path, help="new sketch-set folder (sketches.json + masks/)")
     parser.add_argument("--overwrite", action="store_true", help="replace a sketch set already in OUTPUT")
@@ -129,5 +132,8 @@ def entrypoint(argv: Optional[List[str]] = None) -> None:
     if (args.output / SKETCHES_JSON).exists() and not args.overwrite:  # before reading anything
         raise SkedUserError(f"sked-import-authors: {args.output / SKETCHES_JSON} already exists. Choose another "
                             "output folder, or pass --overwrite to replace that sketch set.")
-    path = save_sketch_set(import_authors_sketches(args.source), args.output, overwrite=args.overwrite)
+    sketch_set = import_authors_sketches(args.source)
+    check_sketches_meet(sketch_set.views)  # refused now, not when an edit reads the set
+    check_writable_folder(args.output, "OUTPUT")
+    path = save_sketch_set(sketch_set, args.output, overwrite=args.overwrite)
     print(f"wrote {path}")

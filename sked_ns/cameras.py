@@ -16,6 +16,8 @@ import torch
 from jaxtyping import Float
 from torch import Tensor
 
+from sked_ns.errors import SkedUserError
+
 if TYPE_CHECKING:  # nerfstudio only where a nerfstudio camera is made: the maths above needs none
     from nerfstudio.cameras.cameras import Cameras
 
@@ -118,14 +120,14 @@ def check_camera_to_world(matrix: np.ndarray, where: str, atol: float = 1e-3) ->
     """
     matrix = np.asarray(matrix, dtype=np.float64)
     if matrix.shape not in ((3, 4), (4, 4)):
-        raise ValueError(f"{where}: expected a 4x4 (or 3x4) camera-to-world matrix, got shape {matrix.shape}.")
+        raise SkedUserError(f"{where}: expected a 4x4 (or 3x4) camera-to-world matrix, got shape {matrix.shape}.")
     if not np.all(np.isfinite(matrix)):
-        raise ValueError(f"{where}: the camera-to-world matrix holds NaN or inf values.")
+        raise SkedUserError(f"{where}: the camera-to-world matrix holds NaN or inf values.")
     if matrix.shape == (4, 4) and not np.allclose(matrix[3], [0, 0, 0, 1], atol=atol):
-        raise ValueError(f"{where}: the last row of a 4x4 camera-to-world matrix must be [0, 0, 0, 1], got {matrix[3]}.")
+        raise SkedUserError(f"{where}: the last row of a 4x4 camera-to-world matrix must be [0, 0, 0, 1], got {matrix[3]}.")
     rotation = matrix[:3, :3]
     if not np.allclose(rotation.T @ rotation, np.eye(3), atol=atol) or np.linalg.det(rotation) < 0:
-        raise ValueError(
+        raise SkedUserError(
             f"{where}: the rotation part is not a proper rotation (orthonormal, determinant +1); "
             "scale, shear or a mirrored axis is not a rigid camera pose. Check the matrix convention "
             "(camera-to-world, OpenGL axes)."

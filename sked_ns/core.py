@@ -25,6 +25,7 @@ from torch import Tensor
 from sked_ns.base_scene import read_model_state, uses_tcnn
 from sked_ns.colour_residual import ColourResidual
 from sked_ns.edit import SkedEdit
+from sked_ns.errors import SkedUserError
 from sked_ns.held_field import held_field_outputs
 from sked_ns.hull_carving import SketchRayOpacity
 from sked_ns.losses import new_mass_loss, occupancy_log_probabilities, preservation_loss, sparsity_loss
@@ -77,7 +78,7 @@ class SkedMixin(SkedEdit):
         ours = self.state_dict()
         if uses_tcnn(state) != uses_tcnn(ours):
             trained, here = ("tiny-cuda-nn", "torch") if uses_tcnn(state) else ("torch", "tiny-cuda-nn")
-            raise ValueError(
+            raise SkedUserError(
                 f"{checkpoint}: the base was trained with the {trained} implementation, but this edit builds "
                 f"{here} modules, whose weights are laid out differently. "
                 + ("Install tinycudann here, or edit on the machine that trained the base."
@@ -85,7 +86,7 @@ class SkedMixin(SkedEdit):
             )
         embedding = state.get("field.embedding_appearance.embedding.weight")
         if embedding is not None and embedding.shape[0] != self.num_train_data:
-            raise ValueError(
+            raise SkedUserError(
                 f"{checkpoint}: the base was trained on {embedding.shape[0]} images but --data has "
                 f"{self.num_train_data}. Pass the base's own data and dataparser settings."
             )
@@ -93,7 +94,7 @@ class SkedMixin(SkedEdit):
         missing = [key for key in wanted if key not in state]
         mismatched = [key for key in wanted if key in state and state[key].shape != ours[key].shape]
         if missing or mismatched:
-            raise ValueError(
+            raise SkedUserError(
                 f"{checkpoint}: the base's weights do not fit this model (missing {missing[:3]}, "
                 f"shape mismatch {mismatched[:3]}). Is --data the base's data, and the base a supported method?"
             )

@@ -22,6 +22,7 @@ from nerfstudio.utils.rich_utils import CONSOLE
 
 from sked_ns.cameras import cameras_of
 from sked_ns.edit_box import EditBox
+from sked_ns.errors import SkedUserError
 from sked_ns.random_views import ELEVATION_RANGE_DEG, FOV_RANGE_DEG, RandomViewSampler, focal_from_fov
 from sked_ns.sketches import (SKETCHES_JSON, DataparserTransform, SketchSet, check_declared_frame, load_sketch_set,
                               sketch_view_at)
@@ -58,10 +59,25 @@ TRAINING_CAMERAS = "sked_training_cameras"
 sketch set's declared frame against."""
 
 
+def outputs_transform(outputs) -> DataparserTransform:
+    """The transform a dataparser applied (its dataparser_transforms.json), from its outputs."""
+    return DataparserTransform(outputs.dataparser_transform.numpy().astype(np.float64), float(outputs.dataparser_scale))
+
+
+def sketch_frame_metadata(dataparser_config, outputs) -> Dict:
+    """The train dataset's metadata the model loads the sketch set with, from the train dataparser outputs: the
+    data -> model frame and the training cameras' positions with the scene box centre."""
+    from sked_ns.data_frame import data_frame_transform
+
+    return {SKETCH_FRAME: data_frame_transform(dataparser_config, outputs_transform(outputs)),
+            TRAINING_CAMERAS: (outputs.cameras.camera_to_worlds[:, :, 3].numpy().astype(np.float64),
+                               outputs.scene_box.get_center().numpy().astype(np.float64))}
+
+
 def model_frame_sketches(sketches: Optional[Path], metadata: Dict) -> SketchSet:
     """The sketch set in the model's frame; `metadata` is the train dataset's, as nerfstudio hands it to the model."""
     if sketches is None:
-        raise ValueError("SKED needs a sketch set: pass --sketches <folder with sketches.json>.")
+        raise SkedUserError("SKED needs a sketch set: pass --sketches <folder with sketches.json>.")
     if SKETCH_FRAME not in metadata:
         raise ValueError("A SKED model is set up by SkedPipeline with a SkedDataManager (they know the data's frame).")
     sketch_set = load_sketch_set(sketches)
@@ -77,15 +93,11 @@ class SkedDataManager(VanillaDataManager):
     def __init__(self, *args, **kwargs):
         super().__init__(*args, **kwargs)
         # nerfstudio hands the train dataset's metadata to the model: the sketch set needs this frame.
-        self.train_dataset.metadata[SKETCH_FRAME] = self.data_frame_transform
-        self.train_dataset.metadata[TRAINING_CAMERAS] = (
-            self.train_dataset.cameras.camera_to_worlds[:, :, 3].numpy().astype(np.float64),
-            self.train_dataparser_outputs.scene_box.get_center().numpy().astype(np.float64))
+        self.train_dataset.metadata.update(sketch_frame_metadata(self.config.dataparser, self.train_dataparser_outputs))
 
     @property
     def dataparser_transform(self) -> DataparserTransform:
-        outputs = self.train_dataparser_outputs
-        return DataparserTransform(outputs.dataparser_transform.numpy().astype(np.float64), float(outputs.dataparser_scale))
+        return outputs_transform(self.train_dataparser_outputs)
 
     @property
     def data_frame_transform(self) -> DataparserTransform:
@@ -150,21 +162,28 @@ class SkedDataManager(VanillaDataManager):
 
     def photo_view(self, step: int) -> Dict:
         """The base's training photo `step` mod their number, whole, with its camera, for a model that renders
-        images (splats): {"camera", "image" (H, W, C) float, "index"}, its longer side at most the guidance
-        resolution (area-averaged), cached."""
-        dataset = self.train_dataset
-        index = step % len(dataset)
+        images (splats): {"camera", "image" (H, W, C) float, "index", "native"}, its longer side at most the
+        guidance resolution (area-averaged), cached; "native"() gives the same photo at its own resolution, the one
+        the base was trained at (uncached)."""
+        index = step % len(self.train_dataset)
         cache = self.__dict__.setdefault("_photo_views", {})
         if index not in cache:
-            camera = dataset.cameras[index:index + 1]
-            camera.rescale_output_resolution(min(1.0, self.guidance_resolution / float(max(camera.width, camera.height))))
-            size = (int(camera.height), int(camera.width))
-            image = dataset.get_image_float32(index)
-            if tuple(image.shape[:2]) != size:
-                image = torch.nn.functional.interpolate(image.permute(2, 0, 1)[None], size=size,
-                                                        mode="area")[0].permute(1, 2, 0)
-            cache[index] = {"camera": camera.to(self.device), "image": image.to(self.device), "index": index}
+            cache[index] = {**self._photo_at(index, self.guidance_resolution), "index": index,
+                            "native": lambda: self._photo_at(index, None)}
         return cache[index]
+
+    def _photo_at(self, index: int, longer_side: Optional[int]) -> Dict:
+        """Training photo `index` and its camera, area-averaged down to `longer_side` (None: as it is)."""
+        dataset = self.train_dataset
+        camera = dataset.cameras[index:index + 1]
+        if longer_side is not None:
+            camera.rescale_output_resolution(min(1.0, longer_side / float(max(camera.width, camera.height))))
+        size = (int(camera.height), int(camera.width))
+        image = dataset.get_image_float32(index)
+        if tuple(image.shape[:2]) != size:
+            image = torch.nn.functional.interpolate(image.permute(2, 0, 1)[None], size=size,
+                                                    mode="area")[0].permute(1, 2, 0)
+        return {"camera": camera.to(self.device), "image": image.to(self.device)}
 
 
 def _concatenate(bundles) -> RayBundle:

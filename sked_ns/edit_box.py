@@ -130,6 +130,29 @@ def check_view_baselines(views: Sequence[SketchView]) -> float:
     return widest
 
 
+def refuse_apart(views: Sequence[SketchView], halfspaces, scene_box: Optional[np.ndarray]) -> None:
+    """The sketches meet nowhere (inside the scene box, if given): say which views do not."""
+    apart = [
+        f"{views[i].name or i} and {views[j].name or j}"
+        for i, j in combinations(range(len(views)), 2)
+        if not _feasible([halfspaces[i], halfspaces[j]], scene_box)
+    ]
+    detail = "; ".join(apart) if apart else "no single region lies inside every view's sketch"
+    raise SkedUserError(
+        f"The sketches do not intersect in 3D ({detail}). Each mask must cover the same region seen "
+        "from its own viewpoint: check the masks and that the poses are in the stated 'frame'."
+    )
+
+
+def check_sketches_meet(views: Sequence[SketchView]) -> None:
+    """What compute_edit_box refuses whatever the scene's bounds: views that cannot place the edit in depth, and
+    sketches that meet nowhere (for a set saved without its scene)."""
+    check_view_baselines(views)
+    halfspaces = [frustum_halfspaces(view) for view in views]
+    if not _feasible(halfspaces, None):
+        refuse_apart(views, halfspaces, None)
+
+
 def compute_edit_box(views: Sequence[SketchView], scene_box: Optional[np.ndarray] = None) -> EditBox:
     """Axis-aligned box around the intersection of the views' mask-box frusta.
 
@@ -141,18 +164,9 @@ def compute_edit_box(views: Sequence[SketchView], scene_box: Optional[np.ndarray
     scene_box = None if scene_box is None else np.asarray(scene_box, dtype=np.float64)
     low, high, status = _bounds(halfspaces, scene_box)
     if 2 in status:
-        apart = [
-            f"{views[i].name or i} and {views[j].name or j}"
-            for i, j in combinations(range(len(views)), 2)
-            if not _feasible([halfspaces[i], halfspaces[j]], scene_box)
-        ]
-        detail = "; ".join(apart) if apart else "no single region lies inside every view's sketch"
-        raise ValueError(
-            f"The sketches do not intersect in 3D ({detail}). Each mask must cover the same region seen "
-            "from its own viewpoint: check the masks and that the poses are in the stated 'frame'."
-        )
+        refuse_apart(views, halfspaces, scene_box)
     if any(s != 0 for s in status):
-        raise ValueError(
+        raise SkedUserError(
             "The sketch frusta meet in an unbounded region (the views look along nearly the same line). "
             "Sketch from viewpoints further apart, or give the scene box to clip to."
         )

@@ -1,17 +1,22 @@
 """User errors: a mistake in what was typed or pointed at, printed as one message without a traceback.
 
 Raise `SkedUserError` (or `SkedFileNotFoundError` for a missing file) with a message that names the
-file or flag as the user types it and says what to do. Every `ns-*` command imports the plugin, which
-installs `excepthook`: such an error prints `error: <message>` alone (set SKED_TRACEBACK=1 for the
-traceback); any other exception keeps Python's (or the previous hook's) full report.
+file or flag as the user types it and says what to do. Every `ns-*` command imports the plugin, and
+every `sked-*` command is part of it; importing it installs `excepthook`: such an error prints
+`error: <message>` alone, on one line (set SKED_TRACEBACK=1 for the traceback); any other exception
+keeps Python's (or the previous hook's) full report. Where a library reads a file the user pointed
+at, `reading` turns its failure into such an error; `ArgumentParser` does the same for argparse's.
 """
 
 from __future__ import annotations
 
+import argparse
+import contextlib
 import os
 import sys
 import warnings
 from pathlib import Path
+from typing import Iterator, Tuple, Type
 
 TRACEBACK_ENV = "SKED_TRACEBACK"
 
@@ -24,14 +29,48 @@ class SkedFileNotFoundError(SkedUserError, FileNotFoundError):
     """A file or folder the user named (or one it must hold) is missing."""
 
 
+class SkedFileExistsError(SkedUserError, FileExistsError):
+    """An output the user named already holds something that is never replaced."""
+
+
+READ_ERRORS: Tuple[Type[BaseException], ...] = (OSError, ValueError, KeyError, IndexError, TypeError, AssertionError)
+"""What nerfstudio, diffusers and torch raise on a file they cannot make sense of."""
+
+
+@contextlib.contextmanager
+def reading(what: str, fix: str, errors: Tuple[Type[BaseException], ...] = READ_ERRORS) -> Iterator[None]:
+    """Where a library reads a file or folder the user pointed at (`what`: the flag and the value typed), its
+    failure is the user's input, not a bug: say so in one line, with what to do (`fix`)."""
+    try:
+        yield
+    except SkedUserError:
+        raise
+    except errors as error:
+        detail = str(error).strip().splitlines()[0] if str(error).strip() else ""
+        raise SkedUserError(f"{what}: cannot read it ({type(error).__name__}{': ' + detail if detail else ''}). "
+                            f"{fix}") from error
+
+
+class ArgumentParser(argparse.ArgumentParser):
+    """argparse with its errors (an unknown flag, a value of the wrong type) as one `error:` line."""
+
+    def error(self, message: str):
+        raise SkedUserError(f"{self.prog}: {message} (see {self.prog} --help).")
+
+
 def excepthook(kind, error, traceback) -> None:
     if issubclass(kind, SkedUserError) and os.environ.get(TRACEBACK_ENV, "") in ("", "0"):
-        print(f"error: {error}", file=sys.stderr)
+        print(f"error: {one_line(str(error))}", file=sys.stderr)
         return
     _previous_excepthook(kind, error, traceback)
 
 
 _previous_excepthook = sys.excepthook
+
+
+def one_line(message: str) -> str:
+    """A message listing several problems on lines of their own, as one line (a log greps it whole)."""
+    return " ".join(line.strip() for line in message.splitlines() if line.strip())
 
 
 def install_excepthook() -> None:

@@ -18,6 +18,7 @@ from torch.cuda.amp.grad_scaler import GradScaler
 
 from sked_ns.base_scene import check_same_frame, resolve_base
 from sked_ns.datamanager import SkedDataManagerConfig
+from sked_ns.errors import SkedUserError
 from sked_ns.guidance import check_guidance
 from sked_ns.nerfacto_model import SkedNerfactoModelConfig
 from sked_ns.options import is_carving
@@ -44,7 +45,7 @@ class SkedPipeline(VanillaPipeline):
     ):
         refuse_multi_device(world_size)
         if config.model.sketches is None:  # before any data is read
-            raise ValueError("SKED needs a sketch set: pass --sketches <folder with sketches.json>.")
+            raise SkedUserError("SKED needs a sketch set: pass --sketches <folder with sketches.json>.")
         check_guidance(config.model.guidance, config.model.prompt)  # e.g. --prompt "" would carve: refused first
         # nerfstudio's set-up; the model loads the sketch set in the data's frame (model_frame_sketches).
         super().__init__(config, device, test_mode=test_mode, world_size=world_size, local_rank=local_rank,
@@ -79,7 +80,7 @@ class SkedPipeline(VanillaPipeline):
 def refuse_multi_device(world_size: int) -> None:
     """SKED's step renders through the model directly (not DDP's forward), so gradients would not be synced."""
     if world_size > 1:
-        raise ValueError(
+        raise SkedUserError(
             f"SKED edits on one device, but this run has {world_size} processes (--machine.num-devices x "
             "--machine.num-machines). Run with --machine.num-devices 1 --machine.num-machines 1. Two ways scale "
             "instead: a second GPU for the diffusion model (pipeline.model.guidance:stable-diffusion "

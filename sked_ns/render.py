@@ -7,6 +7,7 @@ from typing import Dict
 
 import torch
 
+from sked_ns.errors import SkedUserError
 from sked_ns.sketches import SketchView, sketch_view_at
 
 
@@ -96,7 +97,7 @@ def load_pipeline(run_dir: Path, device: str = "cpu"):
 
     run = resolve_base(run_dir)
     if run.family == "instant-ngp" and not device.startswith("cuda"):
-        raise ValueError(
+        raise SkedUserError(
             f"{run.run_dir / 'config.yml'}: nerfstudio renders instant-ngp runs with nerfacc's CUDA kernels only. "
             "Use a GPU, or compare with a SKED edit's own frozen copy of its base (sked-eval without --base)."
         )

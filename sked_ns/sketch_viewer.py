@@ -25,7 +25,9 @@ from typing import List, Optional
 import numpy as np
 import torch
 
-from sked_ns.sketching import PinholeCamera, SketchSession, import_canvases, sketch_set_coverage, write_canvases
+from sked_ns.errors import ArgumentParser, SkedFileExistsError, SkedUserError, reading
+from sked_ns.sketching import (CANVASES_JSON, PinholeCamera, SketchSession, import_canvases, sketch_set_coverage,
+                               write_canvases)
 from sked_ns.sketches import SKETCHES_JSON, DataparserTransform
 
 VIEW_WIDTH = 512
@@ -40,10 +42,9 @@ def _load(run: Path, device: str):
     from sked_ns.render import load_pipeline
 
     run = run.parent if run.name == "config.yml" else run
-    try:
+    with reading(f"sked-sketch: the base {run}", "Point at a trained run's folder or its config.yml, with the data "
+                 "it was trained on where its config.yml says."):
         pipeline = load_pipeline(run, device)
-    except (FileNotFoundError, ValueError) as error:
-        raise SystemExit(f"sked-sketch: {error}") from error
     from sked_ns.data_frame import data_frame_transform
 
     outputs = pipeline.datamanager.train_dataparser_outputs
@@ -304,7 +305,8 @@ def training_cameras(pipeline, indices: List[int]) -> List[PinholeCamera]:
     cameras = pipeline.datamanager.train_dataset.cameras
     for index in indices:
         if not 0 <= index < len(cameras):
-            raise SystemExit(f"sked-sketch: --images {index}: the base has {len(cameras)} training images (0..{len(cameras) - 1}).")
+            raise SkedUserError(f"sked-sketch canvases: --images {index}: the base has {len(cameras)} training images "
+                                f"(0..{len(cameras) - 1}).")
     return [PinholeCamera.from_nerfstudio(cameras[index : index + 1]) for index in indices]
 
 
@@ -318,7 +320,7 @@ def port_number(text: str) -> int:
 def new_sketch_folder(out: Path, command: str) -> Path:
     """--out must not hold a sketch set yet: refused before anything is loaded or painted, never replaced."""
     if (out / SKETCHES_JSON).exists():
-        raise SystemExit(f"{command}: --out {out} already holds a sketch set ({out / SKETCHES_JSON}); choose a new "
+        raise SkedFileExistsError(f"{command}: --out {out} already holds a sketch set ({out / SKETCHES_JSON}); choose a new "
                          "folder (an existing sketch set is never overwritten).")
     return out
 
@@ -327,11 +329,14 @@ def entrypoint(argv: Optional[List[str]] = None) -> None:
     argv = sys.argv[1:] if argv is None else argv
     device = "cuda" if torch.cuda.is_available() else "cpu"
     if argv and argv[0] == "canvases":
-        parser = argparse.ArgumentParser(prog="sked-sketch canvases", description="Render canvases to paint masks on.")
+        parser = ArgumentParser(prog="sked-sketch canvases", description="Render canvases to paint masks on.")
         parser.add_argument("base", type=Path, help="base run folder or its config.yml")
         parser.add_argument("folder", type=Path, help="new folder for view_XX.png and canvases.json")
         parser.add_argument("--images", type=int, nargs="+", required=True, help="training image indices to render")
         args = parser.parse_args(argv[1:])
+        if (args.folder / CANVASES_JSON).exists():  # before the base loads
+            raise SkedFileExistsError(f"sked-sketch canvases: {args.folder / CANVASES_JSON} already exists; choose a "
+                                      "new folder for the canvases.")
         _, pipeline, transform = _load(args.base, device)
         path = write_canvases(renderer(pipeline), training_cameras(pipeline, args.images), transform, args.folder,
                               names=[f"training image {i}" for i in args.images])
@@ -339,32 +344,26 @@ def entrypoint(argv: Optional[List[str]] = None) -> None:
               f"(or a white-on-black view_XX_mask.png), then run: sked-sketch import {args.folder} --out SKETCHES")
         return
     if argv and argv[0] == "import":
-        parser = argparse.ArgumentParser(prog="sked-sketch import", description="Painted canvases -> sketch set.")
+        parser = ArgumentParser(prog="sked-sketch import", description="Painted canvases -> sketch set.")
         parser.add_argument("folder", type=Path)
         parser.add_argument("--out", type=Path, required=True)
         args = parser.parse_args(argv[1:])
         new_sketch_folder(args.out, "sked-sketch import")
-        try:
-            print(f"wrote {import_canvases(args.folder, args.out)}")
-        except (ValueError, FileNotFoundError, FileExistsError) as error:
-            raise SystemExit(f"sked-sketch import: {error}") from error
+        print(f"wrote {import_canvases(args.folder, args.out)}")
         try:
             print(sketch_set_coverage(args.out).message())
         except ValueError as error:  # the set is written; an edit would refuse it with this same message
             print(f"sked-sketch import: the set's coverage could not be checked: {error}")
         return
     if argv and argv[0] == "check":
-        parser = argparse.ArgumentParser(prog="sked-sketch check", description="Do a sketch set's views pin the part "
-                                         "down? Prints the coverage report (exit status 0 either way).")
+        parser = ArgumentParser(prog="sked-sketch check", description="Do a sketch set's views pin the part "
+                                "down? Prints the coverage report (exit status 0 either way).")
         parser.add_argument("folder", type=Path, help="sketch set folder (with sketches.json)")
         args = parser.parse_args(argv[1:])
-        try:
-            print(sketch_set_coverage(args.folder).message())
-        except (ValueError, FileNotFoundError) as error:
-            raise SystemExit(f"sked-sketch check: {error}") from error
+        print(sketch_set_coverage(args.folder).message())
         return
-    parser = argparse.ArgumentParser(prog="sked-sketch", description=__doc__.split("\n")[0],
-                                     epilog="Subcommands: `canvases`, `import` (headless) and `check` (a set's coverage).")
+    parser = ArgumentParser(prog="sked-sketch", description=__doc__.split("\n")[0],
+                            epilog="Subcommands: `canvases`, `import` (headless) and `check` (a set's coverage).")
     parser.add_argument("base", type=Path, help="base run folder or its config.yml")
     parser.add_argument("--out", type=Path, required=True, help="folder to save the sketch set into (must be new)")
     parser.add_argument("--port", type=port_number, default=None)

@@ -36,7 +36,7 @@ import numpy as np
 import torch
 
 from sked_ns.cameras import cameras_of, check_camera_to_world, distort
-from sked_ns.errors import SkedUserError
+from sked_ns.errors import SkedFileExistsError, SkedFileNotFoundError, SkedUserError
 from sked_ns.run_lock import writing
 
 if TYPE_CHECKING:
@@ -68,9 +68,9 @@ class DataparserTransform:
             transform = np.asarray(data["transform"], dtype=np.float64)
             scale = float(data["scale"])
         except (OSError, ValueError, KeyError, TypeError) as error:
-            raise ValueError(f"{path}: not a readable nerfstudio dataparser_transforms.json ({error}).") from error
+            raise SkedUserError(f"{path}: not a readable nerfstudio dataparser_transforms.json ({error}).") from error
         if transform.shape != (3, 4) or not np.all(np.isfinite(transform)) or not (math.isfinite(scale) and scale > 0):
-            raise ValueError(f"{path}: 'transform' must be a finite 3x4 matrix and 'scale' a positive number.")
+            raise SkedUserError(f"{path}: 'transform' must be a finite 3x4 matrix and 'scale' a positive number.")
         return cls(transform=transform, scale=scale)
 
     def apply(self, camera_to_world: np.ndarray) -> np.ndarray:
@@ -139,9 +139,9 @@ class SketchSet:
 
     def __post_init__(self) -> None:
         if self.frame not in FRAMES:
-            raise ValueError(f"Unknown sketch frame {self.frame!r}: use one of {FRAMES}.")
+            raise SkedUserError(f"Unknown sketch frame {self.frame!r}: use one of {FRAMES}.")
         if len(self.views) < 2:
-            raise ValueError(
+            raise SkedUserError(
                 f"A sketch set needs at least two views to place the edit in 3D, got {len(self.views)}. "
                 "Sketch the region from a second, different viewpoint."
             )
@@ -235,18 +235,18 @@ def mask_from_image(image: np.ndarray) -> np.ndarray:
 def read_mask(path: Path, width: int, height: int) -> np.ndarray:
     """Read, binarise and fill one mask, checking it against its camera's size."""
     if not path.is_file():
-        raise FileNotFoundError(f"{path}: mask file not found. Check 'mask_path' in {SKETCHES_JSON}.")
+        raise SkedFileNotFoundError(f"{path}: mask file not found. Check 'mask_path' in {SKETCHES_JSON}.")
     image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     if image is None:
-        raise ValueError(f"{path}: cannot read this mask as an image; save it as a PNG.")
+        raise SkedUserError(f"{path}: cannot read this mask as an image; save it as a PNG.")
     if image.shape[:2] != (height, width):
-        raise ValueError(
+        raise SkedUserError(
             f"{path}: mask is {image.shape[1]}x{image.shape[0]} but its camera says w={width}, h={height}. "
             "Draw the mask on a canvas of the camera's size (or fix 'w'/'h')."
         )
     mask = fill_scribbles(mask_from_image(image))
     if not mask.any():
-        raise ValueError(f"{path}: the mask is empty. Paint the region to edit in white (or opaque).")
+        raise SkedUserError(f"{path}: the mask is empty. Paint the region to edit in white (or opaque).")
     return mask
 
 
@@ -269,20 +269,20 @@ def undistort_mask(mask: np.ndarray, fl_x: float, fl_y: float, cx: float, cy: fl
 
 def _number(entry: dict, key: str, where: str, positive: bool = False) -> float:
     if key not in entry:
-        raise ValueError(f"{where}: missing field '{key}'.")
+        raise SkedUserError(f"{where}: missing field '{key}'.")
     try:
         value = float(entry[key])
     except (TypeError, ValueError):
-        raise ValueError(f"{where}: field '{key}' must be a number, got {entry[key]!r}.") from None
+        raise SkedUserError(f"{where}: field '{key}' must be a number, got {entry[key]!r}.") from None
     if not math.isfinite(value) or (positive and value <= 0):
-        raise ValueError(f"{where}: field '{key}' must be a finite{' positive' if positive else ''} number, got {value}.")
+        raise SkedUserError(f"{where}: field '{key}' must be a finite{' positive' if positive else ''} number, got {value}.")
     return value
 
 
 def _distortion(entry: dict, camera_model: str, where: str) -> np.ndarray:
     """[k1, k2, k3, k4, p1, p2], read as nerfstudio reads a transforms.json frame (missing fields are 0)."""
     if camera_model not in PERSPECTIVE_MODELS:
-        raise ValueError(
+        raise SkedUserError(
             f"{where}: 'camera_model' {camera_model!r} is not a perspective camera; sketch masks need one of "
             f"{PERSPECTIVE_MODELS}. Paint the mask on an undistorted (pinhole) image of the view, or on a render of the "
             "base (`sked-sketch`), and give that camera."
@@ -294,7 +294,7 @@ def _distortion(entry: dict, camera_model: str, where: str) -> np.ndarray:
     except (TypeError, ValueError):
         coefficients = np.empty(0)
     if coefficients.shape != (6,) or not np.all(np.isfinite(coefficients)):
-        raise ValueError(f"{where}: 'distortion_params' must be 6 finite numbers [k1, k2, k3, k4, p1, p2], "
+        raise SkedUserError(f"{where}: 'distortion_params' must be 6 finite numbers [k1, k2, k3, k4, p1, p2], "
                          f"got {entry['distortion_params']!r}.")
     return coefficients
 
@@ -302,18 +302,18 @@ def _distortion(entry: dict, camera_model: str, where: str) -> np.ndarray:
 def _view_from_json(entry: dict, folder: Path, index: int, camera_model: str = "OPENCV") -> SketchView:
     where = f"{folder / SKETCHES_JSON} views[{index}]"
     if not isinstance(entry, dict):
-        raise ValueError(f"{where}: each view must be a JSON object.")
+        raise SkedUserError(f"{where}: each view must be a JSON object.")
     if "mask_path" not in entry:
-        raise ValueError(f"{where}: missing field 'mask_path'.")
+        raise SkedUserError(f"{where}: missing field 'mask_path'.")
     if "transform_matrix" not in entry:
-        raise ValueError(f"{where}: missing field 'transform_matrix'.")
+        raise SkedUserError(f"{where}: missing field 'transform_matrix'.")
     width, height = (_number(entry, key, where, positive=True) for key in ("w", "h"))
     if width != int(width) or height != int(height):
-        raise ValueError(f"{where}: 'w' and 'h' must be whole pixel counts.")
+        raise SkedUserError(f"{where}: 'w' and 'h' must be whole pixel counts.")
     try:
         matrix = np.asarray(entry["transform_matrix"], dtype=np.float64)
     except (TypeError, ValueError):
-        raise ValueError(f"{where}: 'transform_matrix' must be a 4x4 array of numbers.") from None
+        raise SkedUserError(f"{where}: 'transform_matrix' must be a 4x4 array of numbers.") from None
     mask_path = folder / entry["mask_path"]
     fl_x, fl_y = (_number(entry, key, where, positive=True) for key in ("fl_x", "fl_y"))
     cx, cy = (_number(entry, key, where) for key in ("cx", "cy"))
@@ -322,7 +322,7 @@ def _view_from_json(entry: dict, folder: Path, index: int, camera_model: str = "
     if coefficients.any():
         mask = undistort_mask(mask, fl_x, fl_y, cx, cy, coefficients)
         if not mask.any():
-            raise ValueError(
+            raise SkedUserError(
                 f"{mask_path}: the mask is empty once the lens distortion of {where} is removed (it lies where the "
                 "undistorted camera does not see). Check the distortion fields k1 ... p2 / 'distortion_params'."
             )
@@ -339,21 +339,21 @@ def load_sketch_set(folder: Path) -> SketchSet:
     folder = Path(folder)
     json_path = folder / SKETCHES_JSON
     if not json_path.is_file():
-        raise FileNotFoundError(f"{json_path}: no sketch set here (expected {SKETCHES_JSON} and PNG masks).")
+        raise SkedFileNotFoundError(f"{json_path}: no sketch set here (expected {SKETCHES_JSON} and PNG masks).")
     try:
         meta = json.loads(json_path.read_text())
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as error:
-        raise ValueError(f"{json_path}: not valid JSON ({error}).") from error
+        raise SkedUserError(f"{json_path}: not valid JSON ({error}).") from error
     if not isinstance(meta, dict):
-        raise ValueError(f"{json_path}: expected a JSON object with 'views'.")
+        raise SkedUserError(f"{json_path}: expected a JSON object with 'views'.")
     frame = meta.get("frame", "data")
     if frame not in FRAMES:
-        raise ValueError(f"{json_path}: unknown 'frame' {frame!r}; use 'data' (the base's transforms.json) or 'model'.")
+        raise SkedUserError(f"{json_path}: unknown 'frame' {frame!r}; use 'data' (the base's transforms.json) or 'model'.")
     entries = meta.get("views")
     if not isinstance(entries, list):
-        raise ValueError(f"{json_path}: missing the list 'views'.")
+        raise SkedUserError(f"{json_path}: missing the list 'views'.")
     if len(entries) < 2:
-        raise ValueError(
+        raise SkedUserError(
             f"{json_path}: {len(entries)} view(s); SKED needs at least two sketch views from different viewpoints."
         )
     camera_model = str(meta.get("camera_model", "OPENCV"))  # a view's own 'camera_model' takes precedence
@@ -375,7 +375,7 @@ def save_sketch_set(sketch_set: SketchSet, folder: Path, overwrite: bool = False
 def _write_sketch_set(sketch_set: SketchSet, folder: Path, overwrite: bool) -> Path:
     json_path = folder / SKETCHES_JSON
     if json_path.exists() and not overwrite:
-        raise FileExistsError(f"{json_path} already exists: choose another folder or pass overwrite=True.")
+        raise SkedFileExistsError(f"{json_path} already exists: choose another folder or pass overwrite=True.")
     (folder / "masks").mkdir(parents=True, exist_ok=True)
     entries = []
     for index, view in enumerate(sketch_set.views):

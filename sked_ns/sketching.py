@@ -22,7 +22,9 @@ from typing import Callable, List, Optional, Sequence, Tuple
 import cv2
 import numpy as np
 
-from sked_ns.edit_box import EditBox, compute_edit_box
+from sked_ns.cameras import check_camera_to_world
+from sked_ns.edit_box import EditBox, check_sketches_meet, compute_edit_box
+from sked_ns.errors import SkedFileExistsError, SkedFileNotFoundError, SkedUserError, reading
 from sked_ns.hull_check import HullCheck, check_hull
 from sked_ns.run_lock import writing
 from sked_ns.sketches import (
@@ -213,7 +215,7 @@ class SketchSession:
         """Write the set; never replaces an existing one."""
         folder = Path(folder)
         if (folder / SKETCHES_JSON).exists():
-            raise FileExistsError(f"{folder / SKETCHES_JSON} already exists: save into a new folder "
+            raise SkedFileExistsError(f"{folder / SKETCHES_JSON} already exists: save into a new folder "
                                   "(an existing sketch set is never overwritten).")
         self.edit_box()  # sketches that do not meet in 3D are an error now, not at edit time
         return save_sketch_set(self.sketch_set(), folder)
@@ -230,7 +232,7 @@ def write_canvases(render: Callable[[PinholeCamera], np.ndarray], cameras: Seque
 
 def _write_canvases(render, cameras, transform, folder: Path, names) -> Path:
     if (folder / CANVASES_JSON).exists():
-        raise FileExistsError(f"{folder / CANVASES_JSON} already exists: choose a new folder for the canvases.")
+        raise SkedFileExistsError(f"{folder / CANVASES_JSON} already exists: choose a new folder for the canvases.")
     folder.mkdir(parents=True, exist_ok=True)
     entries = []
     for index, camera in enumerate(cameras):
@@ -260,42 +262,50 @@ def import_canvases(folder: Path, out: Path) -> Path:
     folder = Path(folder)
     meta_path = folder / CANVASES_JSON
     if not meta_path.is_file():
-        raise FileNotFoundError(f"{meta_path}: not a canvas folder (make one with `sked-sketch canvases`).")
-    meta = json.loads(meta_path.read_text())
+        raise SkedFileNotFoundError(f"{meta_path}: not a canvas folder (make one with `sked-sketch canvases`).")
+    with reading(str(meta_path), "Make the canvases with `sked-sketch canvases` and keep its canvases.json."):
+        meta = json.loads(meta_path.read_text())
+        views, skipped = read_painted_views(folder, meta["views"])
+    if len(views) < 2:
+        raise SkedUserError(f"{folder}: {len(views)} painted view(s) (none for {', '.join(skipped) or '-'}); save at "
+                            "least two as view_XX_sketch.png (painted canvas) or view_XX_mask.png (white on black).")
+    check_sketches_meet(views)  # refused now, not when an edit reads the set
+    return save_sketch_set(SketchSet(views=views, frame=meta.get("frame", "data")), Path(out))
+
+
+def read_painted_views(folder: Path, entries) -> Tuple[List[SketchView], List[str]]:
+    """The sketch views of a canvas folder's painted canvases, and the canvases left unpainted."""
     views, skipped = [], []
-    for entry in meta["views"]:
+    for entry in entries:
         stem = Path(entry["canvas"]).stem
         mask_path, sketch_path = folder / f"{stem}_mask.png", folder / f"{stem}_sketch.png"
         if mask_path.exists():
             image = cv2.imread(str(mask_path), cv2.IMREAD_UNCHANGED)
             if image is None:
-                raise ValueError(f"{mask_path}: cannot read this image; save it as a PNG.")
+                raise SkedUserError(f"{mask_path}: cannot read this image; save it as a PNG.")
             mask = fill_scribbles(mask_from_image(image))
             source = mask_path
         elif sketch_path.exists():
             canvas = cv2.imread(str(folder / entry["canvas"]), cv2.IMREAD_COLOR)
             painted = cv2.imread(str(sketch_path), cv2.IMREAD_COLOR)
             if painted is None:
-                raise ValueError(f"{sketch_path}: cannot read this image; save it as a PNG.")
+                raise SkedUserError(f"{sketch_path}: cannot read this image; save it as a PNG.")
             try:
                 mask = painted_mask(canvas, painted)
             except ValueError as error:
-                raise ValueError(f"{sketch_path}: {error}; paint on the canvas itself.") from error
+                raise SkedUserError(f"{sketch_path}: {error}; paint on the canvas itself.") from error
             source = sketch_path
         else:
             skipped.append(stem)
             continue
         if mask.shape != (entry["h"], entry["w"]):
-            raise ValueError(f"{source}: {mask.shape[1]}x{mask.shape[0]}, but the canvas is {entry['w']}x{entry['h']}.")
+            raise SkedUserError(f"{source}: {mask.shape[1]}x{mask.shape[0]}, but the canvas is {entry['w']}x{entry['h']}.")
         if not mask.any():
-            raise ValueError(f"{source}: nothing drawn (the mask is empty).")
-        pose = np.asarray(entry["transform_matrix"], dtype=np.float64)[:3]
+            raise SkedUserError(f"{source}: nothing drawn (the mask is empty).")
+        pose = check_camera_to_world(entry["transform_matrix"], f"{folder / CANVASES_JSON} {stem} 'transform_matrix'")
         views.append(SketchView(mask=mask, camera_to_world=pose, fl_x=entry["fl_x"], fl_y=entry["fl_y"],
                                 cx=entry["cx"], cy=entry["cy"], name=str(source)))
-    if len(views) < 2:
-        raise ValueError(f"{folder}: {len(views)} painted view(s) (none for {', '.join(skipped) or '-'}); save at "
-                         "least two as view_XX_sketch.png (painted canvas) or view_XX_mask.png (white on black).")
-    return save_sketch_set(SketchSet(views=views, frame=meta.get("frame", "data")), Path(out))
+    return views, skipped
 
 
 def sketch_set_coverage(folder: Path) -> HullCheck:

@@ -561,19 +561,33 @@ class SkedSplatModel(SkedEdit, SplatfactoModel):
     def _photo_anchor(self, photo: Dict, background: Tensor, losses: Dict[str, Tensor],
                       metrics: Dict[str, Tensor]) -> None:
         """MSE to one of the base's training photos at its pixels whose ray never comes near the editable region."""
+        if not self._photos_checked:
+            # Judged at the photo's own resolution, the base's: far below it a render point-samples Gaussians the
+            # downscaled photo averages over, and the base's own photos would score as another scene's.
+            with torch.no_grad():
+                native = self._anchored_pixels(photo["native"]() if "native" in photo else photo, None, background)
+            if native is None or not self.check_photos_once(*native[:2]):
+                return
+        anchored = self._anchored_pixels(photo, photo.get("index"), background)
+        if anchored is not None:
+            predicted, truth, safe = anchored
+            losses["photo_loss"] = self.config.effective_lambda_photo * torch.nn.functional.mse_loss(
+                predicted.float(), truth.float())
+            metrics["photo_rays_kept"] = safe.float().mean()
+
+    def _anchored_pixels(self, photo: Dict, index: Optional[int],
+                      background: Tensor) -> Optional[Tuple[Tensor, Tensor, Tensor]]:
+        """(the edit's render, the photo) at the photo's pixels whose ray keeps away from the editable region, and
+        which pixels those are; None if there is none. `index` caches the pixels per photo."""
         camera, image = photo["camera"], photo["image"].to(self.device)
-        safe = self._photo_pixels_kept(camera, photo.get("index"))
+        safe = self._photo_pixels_kept(camera, index)
         if not safe.any():
-            return
+            return None
         outputs = self._render_edit(camera, background)
         if image.dtype == torch.uint8:
             image = image.float() / 255.0
         truth = self.composite_with_background(image.float(), background)
-        predicted, truth = outputs["rgb"][safe], truth[safe]
-        if self.check_photos_once(predicted, truth):
-            losses["photo_loss"] = self.config.effective_lambda_photo * torch.nn.functional.mse_loss(
-                predicted.float(), truth.float())
-            metrics["photo_rays_kept"] = safe.float().mean()
+        return outputs["rgb"][safe], truth[safe], safe
 
     @torch.no_grad()
     def _photo_pixels_kept(self, camera: Cameras, index: Optional[int]) -> Tensor:

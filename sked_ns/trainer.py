@@ -34,6 +34,7 @@ from sked_ns.resume import resumed_config, typed_settings
 from sked_ns.run_lock import hold, write_failure
 from sked_ns.safe_step import GuardedGradScaler, GuardedOptimizers, StepGuard
 from sked_ns.core import SkedOptions
+from sked_ns.edit_inputs import check_edit_inputs
 from sked_ns.nerfacto_model import SkedNerfactoModelConfig
 from sked_ns.ngp_model import SkedNGPModelConfig
 from sked_ns.splat_model import SkedSplatModelConfig, splat_optimizers
@@ -81,6 +82,8 @@ def resolve_edit(config: SkedTrainerConfig) -> None:
     model = config.pipeline.model
     if config.sketches is not None:
         model.sketches = config.sketches
+    if config.prompt is not None:  # nerfstudio passes --prompt on only when it is not empty: "" must not carve
+        model.prompt = config.prompt
     if config.load_dir is not None and config.load_checkpoint is not None:
         raise SkedUserError(f"--load-dir {config.load_dir} and --load-checkpoint {config.load_checkpoint}: give one "
                             "of them (a run folder, or one of its step-*.ckpt files).")
@@ -98,6 +101,7 @@ def resolve_edit(config: SkedTrainerConfig) -> None:
         else:
             start_edit(config, base)
         check_data(config, base)
+    check_edit_inputs(config)  # everything the edit will read, before anything is written
     # Learning rates decay to 0.1x by the end of this edit (docs/method.md, Optimisation), however long --max-num-iterations makes it.
     for optimizer in config.optimizers.values():
         if hasattr(optimizer.get("scheduler"), "max_steps"):

@@ -253,10 +253,11 @@ def test_data_through_another_dataparser_is_refused(scene, tmp_path):
 
     config = edit_config(scene["base"], scene["data"], scene["sketches"], tmp_path / "out", iterations=2,
                          dataparser=InstantNGPDataParserConfig())
-    resolve_edit(config)
-    with pytest.raises(ValueError, match=r"dataparser_transforms.json: the base was trained in another frame.*"
-                                         r"`nerfstudio-data --data"):
-        config.pipeline.setup(device="cpu", test_mode="val")
+    with pytest.raises(SkedUserError, match=r"dataparser_transforms.json: the base was trained in another frame.*"
+                                            r"`nerfstudio-data --data"):
+        resolve_edit(config)  # before anything is written
+    with pytest.raises(ValueError, match=r"dataparser_transforms.json: the base was trained in another frame"):
+        config.pipeline.setup(device="cpu", test_mode="val")  # from Python, without resolve_edit
 
 
 def test_tcnn_base_without_tcnn_is_explained(scene, tmp_path):
@@ -276,9 +277,10 @@ def test_missing_sketches_and_bad_beta(scene, tmp_path):
     config = edit_config(scene["base"], scene["data"], scene["sketches"], tmp_path, iterations=2)
     config.sketches = None
     config.pipeline.model.sketches = None
-    resolve_edit(config)
+    with pytest.raises(SkedUserError, match="--sketches"):
+        resolve_edit(config)  # before anything is written
     with pytest.raises(ValueError, match="--sketches"):
-        config.pipeline.setup(device="cpu", test_mode="val")
+        config.pipeline.setup(device="cpu", test_mode="val")  # from Python, without resolve_edit
     config.pipeline.model.sketches = scene["sketches"]
     config.pipeline.model.beta = -1.0
     with pytest.raises(ValueError, match="beta"):

@@ -86,6 +86,35 @@ def test_missing_weights_offline_say_how_to_get_them(monkeypatch, tmp_path):
         guidance.prepare("a red hat", "cpu", {})
 
 
+def test_the_file_check_passes_a_saved_checkpoint_and_names_what_a_cached_one_lacks(tiny_sd, tmp_path, monkeypatch):
+    import shutil
+
+    from sked_ns.errors import SkedUserError
+
+    StableDiffusionGuidanceConfig(model=str(tiny_sd)).check_available()  # what save_pretrained writes is enough
+    # The same checkpoint as the hub cache holds a downloaded id, read offline.
+    monkeypatch.setenv("HF_HUB_OFFLINE", "1")
+    monkeypatch.setattr("huggingface_hub.constants.HF_HUB_CACHE", str(tmp_path / "hub"))  # read at import: patched
+    repo = tmp_path / "hub" / "models--someone--tiny-sd"
+    shutil.copytree(tiny_sd, repo / "snapshots" / "0123abcd")
+    (repo / "refs").mkdir()
+    (repo / "refs" / "main").write_text("0123abcd")
+    config = StableDiffusionGuidanceConfig(model="someone/tiny-sd")
+    config.check_available()
+    assert config.setup().weights_available()
+    scheduler = repo / "snapshots" / "0123abcd" / "scheduler" / "scheduler_config.json"
+    saved = scheduler.read_text()
+    scheduler.write_text(saved.replace('"epsilon"', '"sample"'))
+    with pytest.raises(SkedUserError, match="predicts 'sample'"):
+        config.check_available()
+    scheduler.write_text(saved)
+    (repo / "snapshots" / "0123abcd" / "unet" / "diffusion_pytorch_model.safetensors").unlink()  # a broken download
+    with pytest.raises(DiffusionWeightsMissing, match=r"--pipeline.model.guidance.model someone/tiny-sd \(cached in "
+                                                      r".*\): no unet/diffusion_pytorch_model.safetensors or"):
+        config.check_available()
+    assert not config.setup().weights_available()
+
+
 def test_incomplete_local_folder_names_the_part(tmp_path):
     (tmp_path / "sd").mkdir()
     guidance = StableDiffusionGuidanceConfig(model=str(tmp_path / "sd")).setup()

@@ -11,6 +11,7 @@ from scipy.ndimage import binary_closing, binary_fill_holes
 
 from sked_ns.cameras import project
 from sked_ns.demo.scene import orbit_pose
+from sked_ns.errors import SkedUserError
 from sked_ns.edit_box import sketch_direction
 from sked_ns.hull_check import HULL_RATIO_WARN, check_hull, silhouette_area
 from sked_ns.sketches import SketchSet, SketchView, save_sketch_set
@@ -110,7 +111,7 @@ def test_sked_sketch_check_prints_the_warning(tmp_path, capsys):
     assert "view_00.png " in out and str(tmp_path) not in out, "views named by their mask's file name"
     entrypoint(["check", str(tmp_path / "three")])
     assert "Add a sketch" not in capsys.readouterr().out
-    with pytest.raises(SystemExit, match="sked-sketch check: .*no sketch set here"):
+    with pytest.raises(SkedUserError, match="no sketch set here"):
         entrypoint(["check", str(tmp_path)])
 
 

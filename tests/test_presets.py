@@ -133,6 +133,6 @@ def test_learning_rate_decay_spans_the_edit_the_user_asked_for(scene, tmp_path):
 
     config = copy.deepcopy(sked_method.config)
     config.load_dir, config.sketches, config.max_num_iterations = scene["base"], scene["sketches"], 300
-    config.data = scene["data"]
+    config.data, config.machine.device_type = scene["data"], "cpu"
     resolve_edit(config)
     assert {optimizer["scheduler"].max_steps for optimizer in config.optimizers.values()} == {300}

@@ -441,3 +441,27 @@ def test_random_views_frame_the_edit_box_the_pipeline_computed(splat_scene, tmp_
             assert sampler.fov_scale == 1.0
         else:
             assert sampler.fov_scale < 1.0  # the demo part is small beside its scene
+
+
+def test_the_base_is_judged_on_its_own_photos_at_their_resolution(splat_scene, tmp_path):
+    """The anchor's photos are averaged down to the guidance resolution, where a render point-samples the Gaussians:
+    judged there, a base's own photos would read as another scene's and switch the anchor off."""
+    import shutil
+    import warnings
+
+    import cv2
+
+    from sked_ns.photo_anchor import SkedPhotoWarning
+
+    data = tmp_path / "data"
+    shutil.copytree(splat_scene["data"], data)
+    _, pipeline = edit_pipeline(splat_scene, tmp_path)
+    dataset = pipeline.datamanager.train_dataset
+    for index, path in enumerate(dataset.image_filenames):  # photos the base renders exactly: its own
+        rgb = pipeline.model.render_base(dataset.cameras[index:index + 1])["rgb"].numpy()
+        cv2.imwrite(str(data / path.relative_to(splat_scene["data"])), (rgb * 255).round().astype(np.uint8)[..., ::-1])
+    _, pipeline = edit_pipeline({**splat_scene, "data": data}, tmp_path, guidance_resolution=8)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", SkedPhotoWarning)
+        losses = sked_losses(pipeline)
+    assert pipeline.model.base_photo_psnr > 35 and "photo_loss" in losses

@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 import torch
 
+from sked_ns.errors import SkedUserError
 from sked_ns.sketches import load_sketch_set
 
 
@@ -175,15 +176,14 @@ def test_capture_pressed_again_while_rendering_is_ignored(sketch_viewer):
     assert "Still rendering" in panel.last_message and panel.session.pending is pending
 
 
-def test_sked_sketch_refuses_an_existing_set_and_a_bad_port_before_loading_anything(tmp_path, capsys):
+def test_sked_sketch_refuses_an_existing_set_and_a_bad_port_before_loading_anything(tmp_path):
     from sked_ns.sketch_viewer import entrypoint
 
     (tmp_path / "done").mkdir()
     (tmp_path / "done" / "sketches.json").write_text("{}")
     for argv in (["no-base", "--out", str(tmp_path / "done")], ["import", "no-canvases", "--out", str(tmp_path / "done")]):
-        with pytest.raises(SystemExit, match=r"--out .*done already holds a sketch set"):
+        with pytest.raises(SkedUserError, match=r"--out .*done already holds a sketch set"):
             entrypoint(argv)
     assert (tmp_path / "done" / "sketches.json").read_text() == "{}"
-    with pytest.raises(SystemExit):
+    with pytest.raises(SkedUserError, match="argument --port: '70000' is not a port number"):
         entrypoint(["no-base", "--out", str(tmp_path / "new"), "--port", "70000"])
-    assert "not a port number" in capsys.readouterr().err

@@ -9,12 +9,14 @@ pulled towards the change without being pulled towards the analytic scene elsewh
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from typing import Dict, Literal, Optional, Type
 
 import torch
 from torch import Tensor
 
+from sked_ns.errors import SkedUserError
 from sked_ns.guidance.base import Guidance, GuidanceConfig, RenderedView
 
 
@@ -32,6 +34,12 @@ class ReferenceGuidanceConfig(GuidanceConfig):
     """as-rendered: the target is sampled as the edit's render was (a splat edit's supersampled pixels are
     averages; so is the target's), as a camera integrates over each pixel; pixel-centre: one sample a pixel
     whatever the render (the behaviour before 2026-12-02)."""
+
+    def check(self) -> None:
+        reference_scene(self.target)  # an unknown target is refused before the edit writes anything
+        if not (isinstance(self.weight, (int, float)) and math.isfinite(self.weight) and self.weight >= 0):
+            raise SkedUserError(f"--pipeline.model.guidance.weight {self.weight!r}: a loss weight must be a finite "
+                                "number >= 0.")
 
 
 class ReferenceGuidance(Guidance):
@@ -75,4 +83,4 @@ def reference_scene(name: str):
     try:
         return scene_named(name)
     except ValueError as error:
-        raise ValueError(f"--pipeline.model.guidance.target: {error}") from None
+        raise SkedUserError(f"--pipeline.model.guidance.target {name}: {error}") from None

@@ -11,8 +11,8 @@
 
 from __future__ import annotations
 
-import argparse
 import json
+import math
 from pathlib import Path
 from typing import Optional
 
@@ -25,7 +25,8 @@ from sked_ns.demo.base import build_demo_base
 from sked_ns.edit_box import compute_edit_box
 from sked_ns.metrics import intersection_over_sketch, psnr_outside
 from sked_ns.novel_views import eval_split_views, evaluate_novel_views
-from sked_ns.preservation import SketchDistanceField, check_beta
+from sked_ns.errors import ArgumentParser, SkedFileExistsError, SkedUserError, check_writable_folder
+from sked_ns.preservation import SketchDistanceField
 from sked_ns.run_lock import hold
 from sked_ns.sketches import DataparserTransform, SketchSet, load_sketch_set, save_sketch_set
 
@@ -109,18 +110,48 @@ def fit_base(kind: str, data: Path, folder: Path, base_steps: Optional[int], spl
     return build_demo_base(data, folder, steps=600 if base_steps is None else base_steps)
 
 
+def check_demo_settings(output: Path, beta: float, size: int, iterations: int, base_steps: Optional[int],
+                        prompt: Optional[str], diffusion_model: str, device: str, base: str) -> None:
+    """Every setting, named by its flag, before anything is written; last, that --output can take the demo."""
+    from sked_ns.guidance.stable_diffusion import _model_problems
+
+    if not (isinstance(beta, (int, float)) and math.isfinite(beta) and beta > 0):
+        raise SkedUserError(f"--beta {beta!r}: the preservation falloff, a finite number of image widths > 0 "
+                            "(default 0.025).")
+    for flag, value in (("--size", size), ("--iterations", iterations), ("base_steps", base_steps)):
+        if value is not None and (isinstance(value, bool) or not isinstance(value, int) or value < 1):
+            raise SkedUserError(f"{flag} {value!r}: must be a whole number >= 1.")
+    if base not in BASES:
+        raise SkedUserError(f"--base {base}: no demo base {base!r}; choose one of {', '.join(BASES)}.")
+    if prompt is not None and not prompt.strip():
+        raise SkedUserError(f"--prompt {prompt!r} is empty: say what should be in the sketches, or leave --prompt out "
+                            "for the reference guidance.")
+    if prompt is not None:
+        for problem in _model_problems(diffusion_model):
+            raise SkedUserError(problem.replace("--pipeline.model.guidance.model", "--diffusion-model", 1))
+    try:
+        kind = torch.device(device).type
+    except (RuntimeError, ValueError):
+        raise SkedUserError(f"--device {device!r}: not a torch device; pass cpu or cuda.") from None
+    if kind == "cuda" and not torch.cuda.is_available():
+        raise SkedUserError(f"--device {device}: torch sees no CUDA device here; pass --device cpu.")
+    output = Path(output).resolve()
+    if output.exists() and not output.is_dir():
+        raise SkedFileExistsError(f"--output {output}: a file, not a folder; choose another --output.")
+    if output.exists() and any(output.iterdir()) and not (output / MARKER).exists():
+        raise SkedFileExistsError(f"--output {output}: exists and was not made by sked-demo; choose another "
+                                  "--output.")
+    check_writable_folder(output, "--output")
+
+
 def run(output: Path, beta: float = 0.025, size: int = 128, iterations: int = 100, base_steps: Optional[int] = None,
         prompt: Optional[str] = None, diffusion_model: str = "CompVis/stable-diffusion-v1-4", device: str = "cpu",
         base: str = "nerfacto", splat_fit=None) -> dict:
     from sked_ns.edit_run import edit_config, run_edit
     from sked_ns.render import load_pipeline, render_at, render_base_at, resized_mask
 
-    check_beta(beta)
-    if base not in BASES:
-        raise ValueError(f"--base: no demo base {base!r}; choose one of {', '.join(BASES)}.")
+    check_demo_settings(output, beta, size, iterations, base_steps, prompt, diffusion_model, device, base)
     output = Path(output).resolve()  # absolute paths in config.yml: ns-* commands work from anywhere
-    if output.exists() and any(output.iterdir()) and not (output / MARKER).exists():
-        raise FileExistsError(f"{output} exists and was not made by sked-demo: choose another --output.")
     hold(output, "Wait for it to end, or choose another --output.")  # this process's alone until it ends
     (output / MARKER).touch()
 
@@ -179,7 +210,7 @@ def entrypoint() -> None:
     from sked_ns.evaluate import novel_summary
 
     quiet_third_party_warnings()
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser = ArgumentParser(prog="sked-demo", description=__doc__.split("\n")[0])
     parser.add_argument("--output", type=Path, default=Path("demo_output"), help="folder for everything the demo writes")
     parser.add_argument("--beta", type=float, default=0.025, help="preservation falloff, image widths")
     parser.add_argument("--size", type=int, default=128, help="size of the rendered images, pixels")

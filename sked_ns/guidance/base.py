@@ -40,6 +40,10 @@ class GuidanceConfig(InstantiateConfig):
     def check(self) -> None:
         """Refuse settings that cannot work, warn on ones that are almost surely a mistake (before any data is read)."""
 
+    def check_available(self) -> None:
+        """Refuse, before an edit writes anything, when what `prepare` will read (weights) is not there; cheaply,
+        without loading it."""
+
 
 class Guidance:
     """Turns a rendered view into losses; `prepare` runs once before training."""

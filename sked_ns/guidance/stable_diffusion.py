@@ -12,6 +12,7 @@ an image is decoded). The diffusion model may run on its own device (`device`).
 from __future__ import annotations
 
 import gc
+import json
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -21,6 +22,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from sked_ns.errors import SkedFileNotFoundError, SkedUserError
 from sked_ns.guidance.base import Guidance, GuidanceConfig, RenderedView
 from sked_ns.random_views import DIRECTIONS
 from sked_ns.validation import is_number, refuse, warn
@@ -33,9 +35,21 @@ PREDICTION_TYPES = ("epsilon", "v_prediction")
 FLAGS = "--pipeline.model.guidance."
 MAX_GUIDANCE_SCALE = 200.0
 """Above this the SDS loss explodes quadratically (1e6 gives 2e11): DreamFusion and SKED use 100."""
+DIFFUSERS_WEIGHTS = ("diffusion_pytorch_model.safetensors", "diffusion_pytorch_model.bin",
+                     "diffusion_pytorch_model.safetensors.index.json", "diffusion_pytorch_model.bin.index.json")
+TRANSFORMERS_WEIGHTS = ("model.safetensors", "pytorch_model.bin", "model.safetensors.index.json",
+                        "pytorch_model.bin.index.json")
+PARTS: Dict[str, Tuple[Tuple[str, ...], ...]] = {
+    "scheduler": (("scheduler_config.json",),),
+    "tokenizer": (("vocab.json",), ("merges.txt",)),
+    "text_encoder": (("config.json",), TRANSFORMERS_WEIGHTS),
+    "unet": (("config.json",), DIFFUSERS_WEIGHTS),
+    "vae": (("config.json",), DIFFUSERS_WEIGHTS),
+}
+"""What score distillation reads of a diffusers checkpoint, per subfolder: each entry one of these file names."""
 
 
-class DiffusionWeightsMissing(FileNotFoundError):
+class DiffusionWeightsMissing(SkedFileNotFoundError):
     """The diffusion model's weights are not available where we may look."""
 
 
@@ -114,6 +128,13 @@ class StableDiffusionGuidanceConfig(GuidanceConfig):
         if self.weight == 0:
             warn(f"{FLAGS}weight 0: score distillation is off, so nothing but L_sil shapes the sketched region.")
 
+    def check_available(self) -> None:
+        """The checkpoint's files are here (a local folder, or the hub cache offline), without loading them; a hub
+        id not cached yet is downloaded when the edit starts, where the hub is reachable."""
+        folder = checkpoint_folder(self.model, _offline(self))
+        if folder is not None:
+            check_checkpoint_folder(folder, self.model)
+
 
 def looks_like_path(source: str) -> bool:
     """A folder, not a hub id: it starts with / . ~, has more than one '/', or its first part exists here."""
@@ -167,6 +188,54 @@ def _offline(config: StableDiffusionGuidanceConfig) -> bool:
     return config.local_files_only or os.environ.get("HF_HUB_OFFLINE", "0") not in ("", "0", "false", "False")
 
 
+def how_to_get_weights(source: str) -> str:
+    return ("Provide the weights: download a diffusers Stable Diffusion checkpoint once where the hub is reachable "
+            f"(`huggingface-cli download {source}` fills the cache read offline), or pass a local folder with "
+            f"`pipeline.model.guidance:stable-diffusion {FLAGS}model /path/to/stable-diffusion`. Without weights, "
+            "use `pipeline.model.guidance:reference`.")
+
+
+def checkpoint_folder(source: str, offline: bool) -> Optional[Path]:
+    """The folder `from_pretrained` would read `source` from: itself, or the hub cache's snapshot of that id; None
+    for a hub id not cached while the hub may be reached (it is downloaded then)."""
+    for problem in _model_problems(source):
+        raise DiffusionWeightsMissing(problem)
+    local = Path(source).expanduser()
+    if local.is_dir():
+        return local
+    from huggingface_hub import snapshot_download
+
+    try:
+        return Path(snapshot_download(source, local_files_only=True))
+    except Exception as error:  # not cached, or not a hub id at all (huggingface_hub raises a dozen kinds)
+        if not offline:
+            return None
+        raise DiffusionWeightsMissing(f"{FLAGS}model {source}: not in the hub cache, and the hub is not to be "
+                                      f"contacted (HF_HUB_OFFLINE or {FLAGS}local-files-only; "
+                                      f"{type(error).__name__}). {how_to_get_weights(source)}") from None
+
+
+def check_checkpoint_folder(folder: Path, source: str) -> None:
+    """Refuse a diffusers checkpoint folder lacking a file score distillation reads, or one whose UNet predicts what
+    SDS cannot use (read from its scheduler's config, not its weights)."""
+    where = f"{FLAGS}model {source}" + ("" if Path(source).expanduser() == folder else f" (cached in {folder})")
+    missing = [f"{part}/{' or '.join(names)}" for part, needs in PARTS.items() for names in needs
+               if not any((folder / part / name).is_file() for name in names)]
+    if missing:
+        raise DiffusionWeightsMissing(
+            f"{where}: no {', '.join(missing)}. A diffusers Stable Diffusion checkpoint holds unet/, vae/, "
+            f"text_encoder/, tokenizer/ and scheduler/ (as `save_pretrained` or `huggingface-cli download` write "
+            f"them). {how_to_get_weights(source)}")
+    config_path = folder / "scheduler" / "scheduler_config.json"
+    try:
+        prediction_type = json.loads(config_path.read_text()).get("prediction_type", "epsilon")
+    except (OSError, ValueError, AttributeError) as error:
+        raise SkedUserError(f"{where}: {config_path} is not a readable scheduler config ({error}).") from error
+    if prediction_type not in PREDICTION_TYPES:
+        raise SkedUserError(f"{where}: its UNet predicts {prediction_type!r} (scheduler/scheduler_config.json); score "
+                            f"distillation supports {PREDICTION_TYPES}: SD 1.x, 2.x base and 2.x 768 checkpoints.")
+
+
 class StableDiffusionGuidance(Guidance):
     config: StableDiffusionGuidanceConfig
 
@@ -188,31 +257,24 @@ class StableDiffusionGuidance(Guidance):
             return cls.from_pretrained(source, subfolder=subfolder, local_files_only=_offline(self.config), **kwargs)
         except (OSError, ValueError) as error:
             where = f"the folder {local}" if local.exists() else f"the hub id '{source}'"
+            detail = str(error).strip().splitlines()[0] if str(error).strip() else ""
             raise DiffusionWeightsMissing(
-                f"Cannot load the diffusion model's '{subfolder}' from {where} ({type(error).__name__}: {error}). "
-                "Provide the weights: download a diffusers Stable Diffusion checkpoint once where the hub is "
-                f"reachable (`huggingface-cli download {source}` fills the cache read offline), or pass a local "
-                "folder with `pipeline.model.guidance:stable-diffusion --pipeline.model.guidance.model "
-                "/path/to/stable-diffusion`. Without weights, use `pipeline.model.guidance:reference`."
+                f"{FLAGS}model {source}: cannot load the diffusion model's '{subfolder}' from {where} "
+                f"({type(error).__name__}: {detail}). {how_to_get_weights(source)}"
             ) from error
 
     def weights_available(self) -> bool:
-        """Whether the checkpoint can be read here without downloading (its scheduler, as a probe)."""
-        from diffusers import DDPMScheduler
-
-        offline = self.config.local_files_only
-        self.config.local_files_only = True
+        """Whether every file of the checkpoint can be read here without downloading."""
         try:
-            self._load(DDPMScheduler, "scheduler")
+            folder = checkpoint_folder(self.config.model, offline=True)
+            check_checkpoint_folder(folder, self.config.model)
             return True
-        except DiffusionWeightsMissing:
+        except SkedUserError:
             return False
-        finally:
-            self.config.local_files_only = offline
 
     def prepare(self, prompt: Optional[str], device: str, context: Dict) -> None:
         if not prompt or not prompt.strip():
-            raise ValueError("Score distillation needs a text prompt: pass --prompt \"...\" (to carve the sketched "
+            raise SkedUserError("Score distillation needs a text prompt: pass --prompt \"...\" (to carve the sketched "
                              "region away instead, leave out --prompt).")
         sds_weight(torch.zeros(1), self.config.weighting)  # a bad weighting fails before any weights load
         from diffusers import AutoencoderKL, DDPMScheduler, UNet2DConditionModel
@@ -223,7 +285,7 @@ class StableDiffusionGuidance(Guidance):
         scheduler = self._load(DDPMScheduler, "scheduler")  # first: an unsupported checkpoint fails before the weights
         self.prediction_type = scheduler.config.prediction_type
         if self.prediction_type not in PREDICTION_TYPES:
-            raise ValueError(f"{self.config.model}: its UNet predicts {self.prediction_type!r} (scheduler/"
+            raise SkedUserError(f"{self.config.model}: its UNet predicts {self.prediction_type!r} (scheduler/"
                              f"scheduler_config.json); score distillation supports {PREDICTION_TYPES}: SD 1.x, 2.x base "
                              f"and 2.x 768 checkpoints ({FLAGS}model).")
         self.alphas_cumprod = scheduler.alphas_cumprod.to(self.device, torch.float32)
