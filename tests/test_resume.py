@@ -235,6 +235,14 @@ def test_output_folder_under_a_file_is_refused_with_its_flag(tmp_path, monkeypat
 # ---- the resumed run's config.yml ------------------------------------------------------------
 
 
+@pytest.fixture
+def inputs_pass(monkeypatch):
+    """A fake_run has no data nor sketches: the inputs' checks (tests/test_cli_errors.py) pass, the writing is tested."""
+    import sked_ns.trainer
+
+    monkeypatch.setattr(sked_ns.trainer, "check_edit_inputs", lambda config: None)
+
+
 def resumed_into(run: Path, output_dir: Path, timestamp: str = "{timestamp}"):
     """`ns-train sked --load-dir RUN --output-dir OUT --data ... --max-num-iterations 100` on a fake_run."""
     config = resume_config(run, output_dir, iterations=100)
@@ -244,7 +252,7 @@ def resumed_into(run: Path, output_dir: Path, timestamp: str = "{timestamp}"):
     return config
 
 
-def test_a_resumed_runs_config_yml_names_none_of_the_interrupted_runs_checkpoints(tmp_path):
+def test_a_resumed_runs_config_yml_names_none_of_the_interrupted_runs_checkpoints(tmp_path, inputs_pass):
     """nerfstudio's eval_setup (ns-render, ns-export, ns-viewer) loads config.yml's load_step from the run's own
     folder: the step this start resumes from is the interrupted run's."""
     run = fake_run(tmp_path / "run", [10])
@@ -288,7 +296,7 @@ def full_disk(monkeypatch) -> None:
     monkeypatch.setattr(io, "open", opened)  # pathlib's writes and os.fdopen open through it
 
 
-def test_a_full_disk_at_resume_keeps_config_yml_and_says_so_in_one_line(tmp_path, monkeypatch):
+def test_a_full_disk_at_resume_keeps_config_yml_and_says_so_in_one_line(tmp_path, monkeypatch, inputs_pass):
     # sked-batch resumes a job into its own folder: a failed write must not leave its config.yml empty.
     run = fake_run(tmp_path / "job" / "edit" / "sked" / "run", [10])
     before = (run / "config.yml").read_text()
@@ -338,7 +346,7 @@ def test_a_splat_edit_compares_each_typed_flag_as_a_nerf_edit_does():
         resume(resume_config(Path("/run")), saved_splat_edit(), argv=["ns-train", "sked", "--pipeline.model.beta", "0.025"])
 
 
-def test_an_edit_resumed_by_an_older_version_opens_and_says_how_nerfstudio_can_open_it(tmp_path):
+def test_an_edit_resumed_by_an_older_version_opens_and_says_how_nerfstudio_can_open_it(tmp_path, inputs_pass):
     run = fake_run(tmp_path / "run", [30])
     older = yaml.load((run / "config.yml").read_text(), Loader=yaml.Loader)
     older.load_dir, older.load_step = tmp_path / "interrupted" / "nerfstudio_models", 20  # as it resumed

@@ -100,9 +100,13 @@ def test_a_second_edit_into_a_run_folder_being_written_is_refused(scene, tmp_pat
         run_lock.release(run_dir)
 
 
-def test_resuming_into_a_run_folder_being_written_is_refused(tmp_path):
+def test_resuming_into_a_run_folder_being_written_is_refused(tmp_path, monkeypatch):
     """`ns-train sked --load-dir RUN --timestamp <its own>` (what sked-batch resumes with) while RUN still runs."""
     import yaml
+
+    import sked_ns.trainer
+
+    monkeypatch.setattr(sked_ns.trainer, "check_edit_inputs", lambda config: None)  # a fake run: no data, no sketches
     from test_resume import fake_run, saved_edit
 
     from sked_ns.edit_run import resume_config
