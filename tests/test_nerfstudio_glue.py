@@ -168,7 +168,7 @@ def test_other_models_are_refused():
     assert base_family(SkedNGPModelConfig()) == "sked"
 
 
-def test_run_edit_seeds_as_ns_train_does():
+def test_run_edit_seeds_as_ns_train_does(tmp_path):
     """ns-train seeds torch, numpy and random from machine.seed before building the trainer; the demo, the
     tests and the benchmarks' Python edits go through run_edit, so it must too, or an edit depends on
     whatever drew random numbers before it (a test that passed alone failed in the full suite)."""
@@ -186,7 +186,8 @@ def test_run_edit_seeds_as_ns_train_does():
             pass
 
     config = types.SimpleNamespace(machine=types.SimpleNamespace(seed=42), set_timestamp=lambda: None,
-                                   save_config=lambda: None, setup=lambda **_: Trainer())
+                                   save_config=lambda: None, setup=lambda **_: Trainer(),
+                                   get_base_dir=lambda: tmp_path / "run")
     first = run_edit(config).draws
     torch.rand(7), np.random.rand(7), random.random()  # whatever ran in between
     second = run_edit(config).draws
