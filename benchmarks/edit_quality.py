@@ -6,9 +6,9 @@
     python benchmarks/edit_quality.py --base splatfacto   # the same edits of Gaussian-splat bases
 
 Scenes: `hat` (the demo sphere's edit, which SKED's defaults were tuned on) and the held-out
-`vase` and `crate` (`sked_ns.demo.benchmark_scenes`, defined before any tuning), reported apart;
+`vase` and `crate` (`sked_ns.demo.scenes.objects`, defined before any tuning), reported apart;
 `--scenes antenna` (or `handle`) adds another of the demo sphere's edits, tuned-on too.
-`--scenes lawn` edits the held-out unbounded scene (`sked_ns.demo.unbounded_scenes`: a ground to the
+`--scenes lawn` edits the held-out unbounded scene (`sked_ns.demo.scenes.unbounded`: a ground to the
 horizon under a sky, low cameras among the objects), reported apart as "held-out, unbounded".
 Each base is trained like a user trains one: `ns-train nerfacto` with its defaults apart from
 the iterations, the rays per batch, the hash-table size and the CPU (nerfstudio's LPIPS metric, an AlexNet
@@ -71,14 +71,14 @@ def run(command: List[str], log: Path) -> None:
 
 def ns_train(arguments: List[str]) -> List[str]:
     """`ns-train ARGUMENTS`, without nerfstudio's LPIPS metric (it downloads AlexNet weights)."""
-    code = ("import sys; from sked_ns.options import without_lpips; from nerfstudio.scripts.train import entrypoint; "
+    code = ("import sys; from sked_ns.method.options import without_lpips; from nerfstudio.scripts.train import entrypoint; "
             "sys.argv = ['ns-train'] + sys.argv[1:]\nwith without_lpips(): entrypoint()")
     return [sys.executable, "-c", code, *arguments]
 
 
 def fit_splat_base(scene: str, data: Path, output: Path, fit: Dict, log: Path) -> Path:
     """A splatfacto run of the scene's photos, fitted on the CPU; its fit's PSNR goes to `log` (JSON)."""
-    from sked_ns.demo.benchmark_scenes import scene_named
+    from sked_ns.demo.scenes.catalogue import scene_named
     from sked_ns.demo.splat_base import SplatFit, dataset_point_cloud, fit_splat_base as fit_base, last_fit
 
     run_dir = output / "splat-base" / "splatfacto" / "base"
@@ -94,7 +94,7 @@ def white_backdrop(scene: str) -> bool:
     background. With nerfacto's default (last_sample) 400 iterations fill the empty space with white mass in front of
     the sphere at the evaluation cameras (eight retrains of the `hat` base, one at 3480315's code: 11-17 dB there;
     white: 22.7 dB, two seeds). The other scenes' bases came out sound with the default, which they keep."""
-    from sked_ns.demo import scene as demo_scene
+    from sked_ns.demo.scenes import sphere as demo_scene
 
     return scene in demo_scene.SCENES
 
@@ -183,7 +183,7 @@ def edit(base: Path, paths: Dict[str, Path], scene: str, protocol: Dict, output:
 
 def score(edit_run: Path, paths: Dict[str, Path], output: Path, log: Path) -> Dict:
     # A rerun of a tag replaces its evaluation (sked-eval never does unasked).
-    run([sys.executable, "-m", "sked_ns.evaluate", str(edit_run), "--output", str(output), "--overwrite",
+    run([sys.executable, "-m", "sked_ns.evaluation.evaluate", str(edit_run), "--output", str(output), "--overwrite",
          "--resolution", "64", "--target", str(paths["target"]), "--novel-resolution", "96"], log)
     return json.loads(output.read_text())
 
@@ -192,9 +192,9 @@ def sketch_view_fill(edit_run: Path, scene: str, sketches: Path, resolution: int
     """Region IoS over the sketch pixels where the exact target shows the added part (`ios_visible`), and the
     region IoS the exact target itself scores (`ios_region_perfect`): a sketch holds the part's hidden
     pixels too, so a correct edit cannot fill all of it, and region IoS alone cannot say how far it is off."""
-    from sked_ns.preservation import SketchDistanceField
-    from sked_ns.render import load_pipeline, render_at, render_base_at
-    from sked_ns.sketches import load_sketch_set
+    from sked_ns.method.preservation import SketchDistanceField
+    from sked_ns.evaluation.render import load_pipeline, render_at, render_base_at
+    from sked_ns.sketches.sketch_set import load_sketch_set
 
     model = load_pipeline(edit_run).model
     data_views = load_sketch_set(sketches).views
@@ -219,9 +219,10 @@ def view_fill(scene: str, data_view, field, beta: float, resolution: int, editab
     (the sketches' SketchDistanceField) gives its preservation weight."""
     import torch
 
-    from sked_ns.sketches import sketch_view_at
-    from sked_ns.demo.benchmark_scenes import scene_named, visible_added_part
-    from sked_ns.metrics import intersection_over_sketch
+    from sked_ns.sketches.sketch_set import sketch_view_at
+    from sked_ns.demo.scenes.objects import visible_added_part
+    from sked_ns.demo.scenes.catalogue import scene_named
+    from sked_ns.evaluation.metrics import intersection_over_sketch
 
     camera, mask = sketch_view_at(data_view, resolution)
     truth = visible_added_part(scene_named(scene), np.asarray(data_view.camera_to_world)[:3], float(camera.fx),
@@ -423,7 +424,7 @@ def main() -> None:
         rescore(args.output, args.work)
         return
     if args.step_time:
-        from sked_ns.demo.benchmark_scenes import write_benchmark
+        from sked_ns.demo.scenes.catalogue import write_benchmark
 
         work = args.work / args.step_time
         if not (work / "sketches" / "sketches.json").exists():
@@ -431,7 +432,7 @@ def main() -> None:
         protocol = (args.protocols or "cpu-100").split(",")[0]
         print(json.dumps(step_time(args.step_time, work, PROTOCOLS[protocol], protocol), indent=2))
         return
-    from sked_ns.demo.benchmark_scenes import write_benchmark
+    from sked_ns.demo.scenes.catalogue import write_benchmark
 
     scenes = ["hat"] if args.quick else args.scenes.split(",")
     protocols = {"quick": {"iterations": 4, "resolution": 16, "samples_per_ray_scale": 0.25}} if args.quick else {

@@ -14,7 +14,7 @@ b. Writes SD v1.x's architecture with RANDOM weights to a local folder (honest t
 c. In the same process, times the bare compiled SD step (VAE encode forward + backward and the
    batch-2 UNet) that every SDS iteration must pay: the floor an edit step is compared with.
 d. Checks nerfacc's CUDA marcher against the torch marcher on the edit's own grid, gsplat's
-   rasterization against sked_ns.splat_render's CPU compositor (images and gradients), edits a
+   rasterization against sked_ns.models.splat.rasterize's CPU compositor (images and gradients), edits a
    splatfacto base of the demo scene (fitted with the torch rasterizer; gsplat renders the edit on
    CUDA), and runs the tests that only run on CUDA.
 e. Writes benchmarks/results/gpu_check.json: per edit the setup, compile and per-iteration
@@ -246,7 +246,7 @@ def run_edit(check: Check, key: str, base: Path, work: Path, sd: Path, args) -> 
     model = trainer.pipeline.model
     entry["model"] = type(model).__name__
     entry["sketch_lookup_compiled"] = model.sketch_field._lookup is not getattr(
-        sys.modules["sked_ns.preservation"], "_sketch_distance")
+        sys.modules["sked_ns.method.preservation"], "_sketch_distance")
     entry["guidance_dtype"] = str(getattr(model.guidance, "dtype", None))
 
     # What a 10,000-iteration edit also pays: a checkpoint every steps_per_save, an eval image every
@@ -270,7 +270,7 @@ def run_edit(check: Check, key: str, base: Path, work: Path, sd: Path, args) -> 
 
 
 def sked_preset_cadence(name: str) -> int:
-    from sked_ns.config import sked_method
+    from sked_ns.engine.presets import sked_method
 
     return int(getattr(sked_method.config, name))
 
@@ -367,7 +367,7 @@ def profile_steps(check: Check, trainer, args) -> dict:
 def marcher_check(check: Check, trainer, args) -> dict:
     """nerfacc's CUDA marcher against the torch marcher on the edit's own occupancy grid and options
     (step, cone angle, near/far planes): the same samples, compared one by one, not only counted."""
-    from sked_ns.occupancy import march_grid, sample_agreement
+    from sked_ns.models.nerf.occupancy import march_grid, sample_agreement
 
     model = trainer.pipeline.model
     grid, config = model.occupancy_grid, model.config
@@ -404,9 +404,9 @@ def marcher_check(check: Check, trainer, args) -> dict:
 
 
 def splat_raster_check(device: str) -> dict:
-    """gsplat's CUDA rasterization vs sked_ns.splat_render's CPU compositor on one random scene: each image and
+    """gsplat's CUDA rasterization vs sked_ns.models.splat.rasterize's CPU compositor on one random scene: each image and
     gradient's largest difference, relative to gsplat's largest value."""
-    from sked_ns.splat_render import compare_with_gsplat
+    from splat_agreement import compare_with_gsplat  # benchmarks/, beside this script
 
     differences = compare_with_gsplat(device)
     relative = {key: differences[key] / max(differences.get(f"{key}_scale", 0.0), 1e-12)
@@ -442,9 +442,9 @@ def environment(args) -> dict:
 
             info["nerfacc_kernels"] = "prebuilt extension (nerfacc.csrc)"
         except ImportError:
-            from sked_ns.nerfacc_kernels import needs_patched_build
+            from sked_ns.models.nerf.nerfacc_kernels import needs_patched_build
 
-            # How the first kernel call will get them (sked_ns/nerfacc_kernels.py).
+            # How the first kernel call will get them (sked_ns/models/nerf/nerfacc_kernels.py).
             info["nerfacc_kernels"] = ("sked_ns's patched copy, built once per content" if needs_patched_build()
                                        else "nerfacc's own JIT build on first use")
     except Exception as error:  # reported, not fatal
@@ -497,10 +497,10 @@ def main() -> None:
     check.write()
 
     os.environ.setdefault("HF_HUB_OFFLINE", "1")  # never the hub: the diffusion model is built here, random weights
-    from sked_ns.demo import scene as demo_scene
+    from sked_ns.demo.scenes import sphere as demo_scene
     from sked_ns.demo.base import TinyNerfacto, build_demo_base
     from sked_ns.demo.splat_base import SplatFit, fit_demo_splat_base
-    from sked_ns.sketches import save_sketch_set
+    from sked_ns.sketches.sketch_set import save_sketch_set
     from sds_iteration import build_random_stable_diffusion
 
     with tempfile.TemporaryDirectory() as scratch:

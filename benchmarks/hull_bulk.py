@@ -28,9 +28,9 @@ sketch views, past the masks' 3 px dilation's reach on the part's sides."""
 def hull_bulk(edit_run: Path, scene: str, sketches: Path, samples: int = 64, margin: float = MARGIN,
               png: Optional[Path] = None) -> Dict[str, float]:
     """The figures of a saved edit run (module docstring)."""
-    from sked_ns.demo.benchmark_scenes import scene_named
-    from sked_ns.render import load_pipeline
-    from sked_ns.sketches import DataparserTransform, load_sketch_set
+    from sked_ns.demo.scenes.catalogue import scene_named
+    from sked_ns.evaluation.render import load_pipeline
+    from sked_ns.sketches.sketch_set import DataparserTransform, load_sketch_set
 
     model = load_pipeline(edit_run).model
     transform = DataparserTransform.from_json(edit_run / "dataparser_transforms.json")
@@ -43,8 +43,8 @@ def model_bulk(model, transform, part_sdf, views, samples: int = 64, margin: flo
                png: Optional[Path] = None) -> Dict[str, float]:
     """The figures of an edit model (a NeRF field's, with `field` and `base_field`): `transform` maps the data
     frame, where `part_sdf` (the added part's signed distance) and the sketch `views` live, to the model's."""
-    from sked_ns.edit_box import compute_edit_box
-    from sked_ns.preservation import SketchDistanceField
+    from sked_ns.method.edit_box import compute_edit_box
+    from sked_ns.method.preservation import SketchDistanceField
 
     box = compute_edit_box(views)
     counts = np.maximum(8, np.ceil(samples * box.size / box.size.max())).astype(int)

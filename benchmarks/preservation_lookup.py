@@ -26,8 +26,8 @@ import numpy as np
 import torch
 from scipy.spatial import cKDTree
 
-from sked_ns.demo.scene import demo_sketch_set
-from sked_ns.preservation import SketchDistanceField
+from sked_ns.demo.scenes.sphere import demo_sketch_set
+from sked_ns.method.preservation import SketchDistanceField
 
 VIEW_ANGLES = ((20.0, 20.0), (110.0, 30.0), (200.0, 25.0), (290.0, 35.0))
 CDIST_CHUNK = 2048

@@ -85,7 +85,7 @@ def build_random_stable_diffusion(folder: Path, size: str) -> Path:
 @contextmanager
 def edit_autocast(trainer):
     """The autocast SkedTrainer.train_iteration runs the model under: nerfstudio's switch, at SKED's dtype."""
-    from sked_ns.trainer import default_autocast_dtype
+    from sked_ns.engine.trainer import default_autocast_dtype
 
     device_type = "cpu" if trainer.device.split(":")[0] in ("cpu", "mps") else trainer.device.split(":")[0]
     with default_autocast_dtype(device_type, trainer.autocast_dtype):
@@ -149,10 +149,10 @@ def main() -> None:
     parser.add_argument("--workdir", type=Path, default=None)
     args = parser.parse_args()
 
-    from sked_ns.demo import scene as demo_scene
+    from sked_ns.demo.scenes import sphere as demo_scene
     from sked_ns.demo.base import build_demo_base
-    from sked_ns.edit_run import edit_config
-    from sked_ns.sketches import save_sketch_set
+    from sked_ns.engine.edit_run import edit_config
+    from sked_ns.sketches.sketch_set import save_sketch_set
 
     device = "cuda" if torch.cuda.is_available() else "cpu"
     with tempfile.TemporaryDirectory() as scratch:

@@ -40,7 +40,7 @@ SCENE_NAMES = ("hat", "handle", "antenna")
 
 def plan(device: str, quick: bool) -> list[dict]:
     """Every run: a name, its group, scene, knob values and base (hash-grid size)."""
-    from sked_ns.config import PRESETS, read_preset
+    from sked_ns.engine.presets import PRESETS, read_preset
 
     divide_iterations, divide_resolution = ITERATION_DIVISOR[device], RESOLUTION_DIVISOR[device]
 
@@ -85,9 +85,9 @@ def plan(device: str, quick: bool) -> list[dict]:
 
 def prepare(workdir: Path, hash_sizes, base_steps: int = 400) -> dict:
     """The demo dataset, one tiny base per hash-grid size, and the three scenes' sketch sets."""
-    from sked_ns.demo import scene as demo_scene
+    from sked_ns.demo.scenes import sphere as demo_scene
     from sked_ns.demo.base import TinyNerfacto, build_demo_base
-    from sked_ns.sketches import save_sketch_set
+    from sked_ns.sketches.sketch_set import save_sketch_set
 
     data = workdir / "data"
     if not (data / "transforms.json").exists():
@@ -109,11 +109,11 @@ def run_one(run: dict, workdir: Path, prepared: dict, device: str) -> dict:
     """One edit and its measurements (called in a fresh process)."""
     import torch
 
-    from sked_ns.demo import scene as demo_scene
-    from sked_ns.edit_run import edit_config
-    from sked_ns.metrics import intersection_over_sketch, psnr_inside, psnr_outside
-    from sked_ns.render import render_at, render_base_at, resized_mask
-    from sked_ns.sketches import load_sketch_set
+    from sked_ns.demo.scenes import sphere as demo_scene
+    from sked_ns.engine.edit_run import edit_config
+    from sked_ns.evaluation.metrics import intersection_over_sketch, psnr_inside, psnr_outside
+    from sked_ns.evaluation.render import render_at, render_base_at, resized_mask
+    from sked_ns.sketches.sketch_set import load_sketch_set
 
     sketches = workdir / "sketches" / run["scene"]
     config = edit_config(Path(prepared["bases"][str(run["log2_hashmap_size"])]), Path(prepared["data"]), sketches,

@@ -67,8 +67,8 @@ CANDIDATES = {
 # ---- the code candidates, patched into the ns-train process ------------------------------------
 def clip_random_views() -> None:
     """The random views' rays end where they leave the scene box."""
-    from sked_ns.core import SkedMixin
-    from sked_ns.occupancy import ray_aabb
+    from sked_ns.models.nerf.field_edit import SkedMixin
+    from sked_ns.sketches.cameras import ray_aabb
 
     original = SkedMixin._collide
 
@@ -86,7 +86,7 @@ def clip_random_views() -> None:
 
 def mean_appearance() -> None:
     """Every photo's appearance embedding set to their mean, in the edit and its frozen base."""
-    from sked_ns.nerfacto_model import SkedNerfactoModel
+    from sked_ns.models.nerf.nerfacto import SkedNerfactoModel
 
     original = SkedNerfactoModel.populate_modules
 
@@ -103,7 +103,7 @@ def mean_appearance() -> None:
 def ns_train(arguments, patch: str):
     here = str(Path(__file__).resolve().parent)
     code = (f"import sys; sys.path.insert(0, {here!r}); import unbounded_leak; unbounded_leak.{patch}()\n" if patch else "")
-    code += ("import sys; from sked_ns.options import without_lpips; from nerfstudio.scripts.train import entrypoint; "
+    code += ("import sys; from sked_ns.method.options import without_lpips; from nerfstudio.scripts.train import entrypoint; "
              "sys.argv = ['ns-train'] + sys.argv[1:]\nwith without_lpips(): entrypoint()")
     return [sys.executable, "-c", code, *arguments]
 
@@ -141,8 +141,8 @@ def where(edit_run: Path, resolution: int = 48) -> Dict[str, float]:
     pixels whose opacity grew by more than LEAK_PIXEL, the edit's and the base's mean colour error against the photo."""
     from nerfstudio.field_components.field_heads import FieldHeadNames
 
-    from sked_ns.novel_views import KEEP_THRESHOLD, _rescaled, _resize
-    from sked_ns.render import load_pipeline
+    from sked_ns.evaluation.novel_views import KEEP_THRESHOLD, _rescaled, _resize
+    from sked_ns.evaluation.render import load_pipeline
 
     pipeline = load_pipeline(edit_run)
     model, dataset = pipeline.model, pipeline.datamanager.eval_dataset
@@ -179,10 +179,10 @@ def where(edit_run: Path, resolution: int = 48) -> Dict[str, float]:
 def parts(edit_run: Path, work: Path, resolution: int = 64) -> Dict:
     """Per sketch view, over the pixels where the exact target shows the lamp's stem (a few pixels wide) and its ball:
     the mean editable opacity (1 - P) of edit and base, and the fraction of those pixels above 0.5 ("formed")."""
-    from sked_ns.demo.benchmark_scenes import visible_added_part
-    from sked_ns.demo.unbounded_scenes import SCENES
-    from sked_ns.render import load_pipeline, render_at, render_base_at
-    from sked_ns.sketches import load_sketch_set, sketch_view_at
+    from sked_ns.demo.scenes.objects import visible_added_part
+    from sked_ns.demo.scenes.unbounded import SCENES
+    from sked_ns.evaluation.render import load_pipeline, render_at, render_base_at
+    from sked_ns.sketches.sketch_set import load_sketch_set, sketch_view_at
 
     scene = SCENES["lawn"]
     stem, ball = scene.edit_parts

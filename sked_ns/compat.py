@@ -12,10 +12,7 @@ loader and makes those checkpoints load again.
 
 from __future__ import annotations
 
-import inspect
-import re
 import warnings
-from typing import Callable, Optional
 
 import numpy as np
 import torch
@@ -40,41 +37,6 @@ def allow_numpy_in_checkpoints() -> None:
     if add_safe_globals is None:  # torch < 2.4 loads these without help
         return
     add_safe_globals(numpy_safe_globals())
-
-
-# ---- nerfstudio: 1.1.5 (tested) and its main branch ----------------------------------------
-
-
-def datamanager_is_module(datamanager) -> bool:
-    """nerfstudio 1.1.5: a DataManager is a torch.nn.Module, which VanillaPipeline moves with `.to(device)`.
-
-    nerfstudio main: a plain object that keeps its own `device` and has no `.to()`. Detected by type,
-    so a pipeline never calls `.to()` on a datamanager that lacks it (SkedPipeline leaves the move to
-    VanillaPipeline, which does what its own version needs).
-    """
-    return isinstance(datamanager, torch.nn.Module)
-
-
-# 1.1.5's loop: `for step in range(self._start_step, self._start_step + num_iterations)`.
-_LOOP_COUNTS_FROM_START = re.compile(r"range\(\s*self\._start_step\s*,\s*self\._start_step\s*\+")
-
-
-def train_loop_adds_start_step(train: Optional[Callable] = None) -> bool:
-    """nerfstudio 1.1.5: Trainer.train runs `max_num_iterations` more steps after a resume (True).
-
-    nerfstudio main: it runs `range(self._start_step, self.config.max_num_iterations)`, so a resumed
-    run already stops at its total (False). Detected from the source of `train` (default: nerfstudio's
-    Trainer.train); where the source cannot be read, the tested 1.1.5 behaviour is assumed.
-    """
-    if train is None:
-        from nerfstudio.engine.trainer import Trainer
-
-        train = Trainer.train
-    try:
-        source = inspect.getsource(train)
-    except (OSError, TypeError):  # no source shipped (zipped or compiled install)
-        return True
-    return _LOOP_COUNTS_FROM_START.search(source) is not None
 
 
 def quiet_third_party_warnings() -> None:

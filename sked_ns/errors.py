@@ -12,11 +12,12 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import math
 import os
 import sys
 import warnings
 from pathlib import Path
-from typing import Iterator, Tuple, Type
+from typing import Iterator, Sequence, Tuple, Type
 
 TRACEBACK_ENV = "SKED_TRACEBACK"
 
@@ -118,3 +119,37 @@ def show_warnings_as_lines() -> None:
 
     format_warning.sked_lines = True
     warnings.formatwarning = format_warning
+
+
+# ---- settings: the model's and datamanager's flags, checked by method/validation.py and each guidance ----
+
+MODEL_FLAGS = "--pipeline.model."
+DATAMANAGER_FLAGS = "--pipeline.datamanager."
+
+
+class SkedOptionError(SkedUserError):
+    """A setting out of its legal range; the message names the flag as typed and what to pass."""
+
+
+class SkedOptionWarning(UserWarning):
+    """A legal setting that almost surely defeats the edit."""
+
+
+def flag(name: str, prefix: str = MODEL_FLAGS) -> str:
+    """A config field as the user types it: `lambda_pres` -> `--pipeline.model.lambda-pres`."""
+    return prefix + name.replace("_", "-")
+
+
+def is_number(value) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+
+
+def refuse(problems: Sequence[str]) -> None:
+    """The one place a bad setting is refused (all problems at once, so one fix-up run is enough)."""
+    if problems:
+        raise SkedOptionError("Bad SKED setting" + ("s" if len(problems) > 1 else "") + ":\n  " + "\n  ".join(problems))
+
+
+def warn_option(message: str) -> None:
+    """A legal setting that almost surely defeats the edit: warned at the caller's caller (where it was read)."""
+    warnings.warn(message, SkedOptionWarning, stacklevel=3)

@@ -7,8 +7,8 @@ import os
 import numpy as np
 import pytest
 
-from sked_ns.demo.scene import look_at
-from sked_ns.sketches import SketchView
+from sked_ns.demo.scenes.sphere import look_at
+from sked_ns.sketches.sketch_set import SketchView
 
 # No test may reach a model hub.
 os.environ.setdefault("HF_HUB_OFFLINE", "1")
@@ -61,9 +61,9 @@ def random_view(rng: np.random.Generator, width: int, height: int, name: str = "
 @pytest.fixture(scope="session")
 def scene(tmp_path_factory):
     """The demo dataset, a tiny nerfacto base fitted to it (a real run folder) and hat sketches."""
-    from sked_ns.demo import scene as demo_scene
+    from sked_ns.demo.scenes import sphere as demo_scene
     from sked_ns.demo.base import build_demo_base
-    from sked_ns.sketches import save_sketch_set
+    from sked_ns.sketches.sketch_set import save_sketch_set
 
     root = tmp_path_factory.mktemp("scene")
     demo_scene.write_demo_dataset(root / "data")

@@ -10,9 +10,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from sked_ns.edit_run import edit_config, run_edit
-from sked_ns.metrics import intersection_over_sketch, psnr_outside
-from sked_ns.render import render_at, render_base_at, resized_mask
+from sked_ns.engine.edit_run import edit_config, run_edit
+from sked_ns.evaluation.metrics import intersection_over_sketch, psnr_outside
+from sked_ns.evaluation.render import render_at, render_base_at, resized_mask
 
 ITERATIONS = 40
 

@@ -8,10 +8,10 @@ import numpy as np
 import pytest
 import torch
 
-from sked_ns.authors_import import Y_UP_TO_Z_UP, import_authors_sketches, read_authors_meta
-from sked_ns.cameras import project
-from sked_ns.edit_box import compute_edit_box
-from sked_ns.sketches import load_sketch_set, save_sketch_set
+from sked_ns.drawing.authors_import import Y_UP_TO_Z_UP, import_authors_sketches, read_authors_meta
+from sked_ns.sketches.cameras import project
+from sked_ns.method.edit_box import compute_edit_box
+from sked_ns.sketches.sketch_set import load_sketch_set, save_sketch_set
 
 CAT = Path(__file__).parent / "data" / "sked-authors-cat"
 
@@ -72,7 +72,7 @@ def test_bad_folders(tmp_path):
 
 
 def test_the_command_replaces_a_sketch_set_only_with_overwrite(tmp_path, capsys):
-    from sked_ns.authors_import import entrypoint
+    from sked_ns.drawing.authors_import import entrypoint
     from sked_ns.errors import SkedUserError
 
     entrypoint([str(CAT), str(tmp_path / "cat")])

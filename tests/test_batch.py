@@ -26,7 +26,7 @@ from PIL import Image
 
 from sked_ns.batch import state
 from sked_ns.batch.cli import to_run
-from sked_ns.batch.plan import load_plan
+from sked_ns.batch.plan_file import load_plan
 from sked_ns.batch.report import ROW_HEIGHT, write_report
 from sked_ns.batch.runners import run_local, sbatch_script, slurm_options
 from sked_ns.batch.task import run_job

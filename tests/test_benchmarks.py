@@ -231,9 +231,9 @@ def test_sketch_view_fill_credits_a_correct_edit_that_kept_content_hides():
     import torch
 
     import edit_quality
-    from sked_ns.demo.benchmark_scenes import SCENES, visible_added_part
-    from sked_ns.sketches import sketch_view_at
-    from sked_ns.preservation import SketchDistanceField
+    from sked_ns.demo.scenes.objects import SCENES, visible_added_part
+    from sked_ns.sketches.sketch_set import sketch_view_at
+    from sked_ns.method.preservation import SketchDistanceField
 
     views = SCENES["crate"].sketch_set().views
     beta, resolution = 0.025, 64

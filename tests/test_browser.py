@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from sked_ns.sketches import load_sketch_set
+from sked_ns.sketches.sketch_set import load_sketch_set
 
 ROOT = Path(__file__).resolve().parents[1]
 ARTIFACTS = Path(os.environ.get("SKED_TEST_ARTIFACTS", ROOT / "test-artifacts"))
@@ -67,7 +67,7 @@ def test_sketch_panel_in_a_real_browser(scene, tmp_path):
 
     from nerfstudio.viewer.render_state_machine import RenderStateMachine
 
-    from sked_ns.sketch_viewer import start_viewer, stop_viewer
+    from sked_ns.drawing.sketch_viewer import start_viewer, stop_viewer
 
     out = tmp_path / "sketches"
     port = _free_port()

@@ -10,10 +10,10 @@ import numpy as np
 import pytest
 import torch
 
-from sked_ns import novel_views
-from sked_ns.demo.scene import orbit_pose
+from sked_ns.evaluation import novel_views
+from sked_ns.demo.scenes.sphere import orbit_pose
 from sked_ns.errors import SkedUserError
-from sked_ns.sketches import DataparserTransform
+from sked_ns.sketches.sketch_set import DataparserTransform
 
 WIDTH, HEIGHT = 40, 30
 ANGLE_X = 0.8  # radians, Blender's camera_angle_x
@@ -128,7 +128,7 @@ def test_sked_eval_reads_a_blender_target(tmp_path):
     """`sked-eval --target` with a Blender test split (was: 'frame 0 lacks fl_x, w, h')."""
     from nerfstudio.data.dataparsers.blender_dataparser import BlenderDataParserConfig
 
-    from sked_ns.evaluate import choose_novel_views
+    from sked_ns.evaluation.evaluate import choose_novel_views
 
     folder = write_blender(tmp_path / "blender")
     pipeline = SimpleNamespace(
@@ -182,7 +182,7 @@ def test_a_sketch_set_copied_from_an_ns_process_data_transforms_json_lands_on_it
     those photos, although the run's transform starts from the COLMAP frame before `applied_transform`."""
     from nerfstudio.data.dataparsers.nerfstudio_dataparser import NerfstudioDataParserConfig
 
-    from sked_ns.sketches import SketchSet, SketchView
+    from sked_ns.sketches.sketch_set import SketchSet, SketchView
 
     applied = [[0.0, 1.0, 0.0, 0.1], [1.0, 0.0, 0.0, -0.2], [0.0, 0.0, -1.0, 0.3]]
     folder = write_nerfstudio(tmp_path / "data", per_frame=False, extra={"applied_transform": applied, "applied_scale": 2.0})
@@ -198,7 +198,7 @@ def test_a_sketch_set_copied_from_an_ns_process_data_transforms_json_lands_on_it
     for view, index in zip(model_frame.views, (0, 1)):  # frames are named in order, so nerfstudio keeps it
         np.testing.assert_allclose(view.camera_to_world, outputs.cameras.camera_to_worlds[index].numpy(), atol=1e-5)
     # The edit's datamanager hands the model this frame for its sketch set.
-    from sked_ns.datamanager import SKETCH_FRAME, SkedDataManagerConfig
+    from sked_ns.engine.datamanager import SKETCH_FRAME, SkedDataManagerConfig
 
     datamanager = SkedDataManagerConfig(dataparser=config).setup(device="cpu")
     handed = datamanager.train_dataset.metadata[SKETCH_FRAME]

@@ -133,7 +133,7 @@ def _save_config(config) -> None:
     ("frame", r"sketches.json: \"frame\": \"model\", but .* read as \"data\""),
 ])
 def test_every_sketch_set_problem_is_refused_before_anything_is_written(scene, tmp_path, breakage, message):
-    from sked_ns.edit_run import edit_config
+    from sked_ns.engine.edit_run import edit_config
 
     sketches = broken_copy(scene["sketches"], tmp_path / "sketches", breakage)
     config = edit_config(scene["base"], scene["data"], sketches, tmp_path / "out")
@@ -143,7 +143,7 @@ def test_every_sketch_set_problem_is_refused_before_anything_is_written(scene, t
 
 
 def test_an_incomplete_diffusion_checkpoint_is_refused_before_anything_is_written(scene, tmp_path):
-    from sked_ns.edit_run import edit_config
+    from sked_ns.engine.edit_run import edit_config
 
     folder = tmp_path / "sd"
     for part, files in {"scheduler": ["scheduler_config.json"], "tokenizer": ["vocab.json", "merges.txt"],
@@ -161,7 +161,7 @@ def test_an_incomplete_diffusion_checkpoint_is_refused_before_anything_is_writte
 
 
 def test_data_the_dataparser_cannot_read_is_refused_before_anything_is_written(scene, tmp_path):
-    from sked_ns.edit_run import edit_config
+    from sked_ns.engine.edit_run import edit_config
 
     data = tmp_path / "data"
     shutil.copytree(scene["data"], data)

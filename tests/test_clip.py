@@ -7,7 +7,7 @@ import pytest
 import torch
 from tiny_clip import build_tiny_clip
 
-from sked_ns.clip_score import CLIP_MEAN, CLIP_STD, ClipScorer, orbit_cameras
+from sked_ns.evaluation.clip_score import CLIP_MEAN, CLIP_STD, ClipScorer, orbit_cameras
 
 
 @pytest.fixture(scope="module")

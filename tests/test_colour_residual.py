@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from sked_ns.colour_residual import ColourResidual
+from sked_ns.models.nerf.colour_residual import ColourResidual
 
 
 def _residual(seed: int = 0) -> ColourResidual:

@@ -17,14 +17,15 @@ from reference import file_digests
 import yaml
 from nerfstudio.configs.method_configs import method_configs
 
-from sked_ns.demo import scene as demo_scene
-from sked_ns.base_scene import read_model_state, resolve_base
-from sked_ns.edit_run import edit_config, resume_config, run_edit
+from sked_ns.demo.scenes import sphere as demo_scene
+from sked_ns.engine.base_scene import resolve_base
+from sked_ns.method.frozen_base import read_model_state
+from sked_ns.engine.edit_run import edit_config, resume_config, run_edit
 from sked_ns.errors import SkedUserError
-from sked_ns.metrics import intersection_over_sketch, psnr_outside
-from sked_ns.render import load_pipeline, render_at, resized_mask
-from sked_ns.trainer import resolve_edit
-from sked_ns.sketches import SketchSet, SketchView, load_sketch_set, save_sketch_set
+from sked_ns.evaluation.metrics import intersection_over_sketch, psnr_outside
+from sked_ns.evaluation.render import load_pipeline, render_at, resized_mask
+from sked_ns.engine.trainer import resolve_edit
+from sked_ns.sketches.sketch_set import SketchSet, SketchView, load_sketch_set, save_sketch_set
 
 ITERATIONS = 60
 
@@ -218,8 +219,8 @@ def test_unwritable_output_dir_is_refused_before_anything_runs(scene, tmp_path):
 
 
 def test_a_base_without_dataparser_transforms_warns(scene, tmp_path):
-    from sked_ns.base_scene import check_same_frame
-    from sked_ns.sketches import DataparserTransform
+    from sked_ns.engine.base_scene import check_same_frame
+    from sked_ns.sketches.sketch_set import DataparserTransform
 
     run = tmp_path / "run"
     shutil.copytree(scene["base"], run, ignore=shutil.ignore_patterns("dataparser_transforms.json"))
@@ -373,7 +374,7 @@ def test_sked_eval_reports_the_paper_metrics(scene, edited, tmp_path):
 
     output = tmp_path / "eval.json"
     result = subprocess.run(
-        [sys.executable, "-m", "sked_ns.evaluate", str(edited["run"] / "config.yml"), "--output", str(output),
+        [sys.executable, "-m", "sked_ns.evaluation.evaluate", str(edited["run"] / "config.yml"), "--output", str(output),
          "--resolution", "48", "--novel-resolution", "24", "--max-novel-views", "2"], capture_output=True, text=True, timeout=600,
     )
     assert result.returncode == 0, result.stderr[-3000:]
@@ -390,7 +391,7 @@ def test_sked_eval_reports_the_paper_metrics(scene, edited, tmp_path):
 def test_sked_eval_clip_similarity_with_local_weights(scene, edited, tmp_path):
     from tiny_clip import build_tiny_clip
 
-    from sked_ns.evaluate import evaluate
+    from sked_ns.evaluation.evaluate import evaluate
 
     clip = build_tiny_clip(tmp_path / "clip")
     outcome = evaluate(edited["run"], resolution=32, clip_model=str(clip), prompt="a sphere wearing a hat",

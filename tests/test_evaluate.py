@@ -12,7 +12,7 @@ import pytest
 import torch
 
 from sked_ns.errors import SkedFileNotFoundError, SkedUserError
-from sked_ns.evaluate import edit_run_folder, orbit_count, output_paths, positive_int
+from sked_ns.evaluation.eval_inputs import edit_run_folder, orbit_count, output_paths, positive_int
 
 
 def test_results_go_next_to_the_edit_and_never_replace_an_earlier_one(tmp_path):
@@ -46,7 +46,7 @@ def test_sizes_and_counts_must_be_positive_whole_numbers(text):
 
 
 def test_the_command_refuses_before_loading_anything(tmp_path, monkeypatch, capsys):
-    from sked_ns.evaluate import entrypoint
+    from sked_ns.evaluation.evaluate import entrypoint
 
     monkeypatch.setattr(sys, "argv", ["sked-eval", str(tmp_path / "nowhere"), "--resolution", "0"])
     with pytest.raises(SystemExit):
@@ -77,14 +77,14 @@ def fake_run(tmp_path):
 
 
 def sked_eval(monkeypatch, *argv):
-    from sked_ns.evaluate import entrypoint
+    from sked_ns.evaluation.evaluate import entrypoint
 
     monkeypatch.setattr(sys, "argv", ["sked-eval", *map(str, argv)])
     entrypoint()
 
 
 def test_a_target_is_read_up_front_and_never_ignored(tmp_path, monkeypatch):
-    from sked_ns.evaluate import evaluate
+    from sked_ns.evaluation.evaluate import evaluate
 
     run, fresh = fake_run(tmp_path), tmp_path / "fresh" / "metrics.json"
     broken = tmp_path / "broken.json"
@@ -147,7 +147,7 @@ def test_overwrite_replaces_only_an_earlier_result_and_the_two_outputs_differ(tm
 @pytest.fixture(scope="module")
 def tiny_edit(scene, tmp_path_factory):
     """A two-step reference-guided edit of the demo base at 16 px (what sked-eval loads and renders)."""
-    from sked_ns.edit_run import edit_config, run_edit
+    from sked_ns.engine.edit_run import edit_config, run_edit
 
     config = edit_config(scene["base"], scene["data"], scene["sketches"], tmp_path_factory.mktemp("edit"), iterations=2,
                          guidance_resolution=16, silhouette_resolution=16, steps_per_save=100)
@@ -168,7 +168,7 @@ def test_another_base_prints_no_nan_and_says_why_its_region_ios_is_missing(scene
 
 
 def test_only_a_sked_edit_is_evaluated_and_not_against_itself(scene, tiny_edit):
-    from sked_ns.evaluate import evaluate
+    from sked_ns.evaluation.evaluate import evaluate
 
     with pytest.raises(SkedUserError, match=r"sked-eval \S+: a 'nerfacto' run, not a SKED edit"):
         evaluate(scene["base"], cameras="none")

@@ -13,7 +13,7 @@ import torch
 
 from sked_ns.guidance import RenderedView, StableDiffusionGuidanceConfig, check_guidance, guidance_config
 from sked_ns.guidance.stable_diffusion import DiffusionWeightsMissing
-from sked_ns.validation import SkedOptionError, SkedOptionWarning
+from sked_ns.errors import SkedOptionError, SkedOptionWarning
 from tiny_sd import build_tiny_stable_diffusion
 
 
@@ -298,7 +298,7 @@ def test_the_vae_decoder_never_moves_and_the_text_encoder_is_freed(tiny_sd, monk
 def test_guidance_device_parses_from_the_command_line():
     import tyro
 
-    from sked_ns.config import sked_method
+    from sked_ns.engine.presets import sked_method
 
     config = sked_method.config
     parsed = tyro.cli(type(config), default=config, args=["pipeline.model.guidance:stable-diffusion",
@@ -346,8 +346,8 @@ def test_an_empty_prompt_is_refused_and_says_how_to_carve(prompt):
 
 
 def test_the_pipeline_refuses_an_empty_prompt_before_reading_any_data(tmp_path):
-    from sked_ns.nerfacto_model import SkedNerfactoModelConfig
-    from sked_ns.pipeline import SkedPipelineConfig
+    from sked_ns.models.nerf.nerfacto import SkedNerfactoModelConfig
+    from sked_ns.engine.pipeline import SkedPipelineConfig
 
     # An unset shell variable ($PROMPT) must not carve the sketched region away; nothing here exists to be read.
     model = SkedNerfactoModelConfig(sketches=tmp_path / "no-sketches", prompt="")

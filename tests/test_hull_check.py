@@ -9,12 +9,12 @@ import pytest
 import torch
 from scipy.ndimage import binary_closing, binary_fill_holes
 
-from sked_ns.cameras import project
-from sked_ns.demo.scene import orbit_pose
+from sked_ns.sketches.cameras import project
+from sked_ns.demo.scenes.sphere import orbit_pose
 from sked_ns.errors import SkedUserError
-from sked_ns.edit_box import sketch_direction
-from sked_ns.hull_check import HULL_RATIO_WARN, check_hull, silhouette_area
-from sked_ns.sketches import SketchSet, SketchView, save_sketch_set
+from sked_ns.method.edit_box import sketch_direction
+from sked_ns.drawing.hull_check import HULL_RATIO_WARN, check_hull, silhouette_area
+from sked_ns.sketches.sketch_set import SketchSet, SketchView, save_sketch_set
 
 SIZE, FOCAL, RADIUS = 64, 75.0, 3.0
 UP = np.array([0.0, 0.0, 1.0])
@@ -101,7 +101,7 @@ def test_up_defaults_to_the_cameras_mean_up():
 
 
 def test_sked_sketch_check_prints_the_warning(tmp_path, capsys):
-    from sked_ns.sketch_viewer import entrypoint
+    from sked_ns.drawing.sketch_viewer import entrypoint
 
     save_sketch_set(SketchSet(views=views_of(STICK, SIDE_VIEWS), frame="model"), tmp_path / "two")
     save_sketch_set(SketchSet(views=views_of(STICK, SIDE_VIEWS + (FROM_ABOVE,)), frame="model"), tmp_path / "three")
@@ -119,9 +119,10 @@ def test_viewer_panel_shows_the_coverage(tmp_path):
     """The panel's coverage text, on a real viser server with the views of the stick added one by one."""
     import viser
 
-    import sked_ns.sketch_viewer as sketch_viewer
-    from sked_ns.sketching import PinholeCamera, SketchSession
-    from sked_ns.sketches import DataparserTransform
+    import sked_ns.drawing.sketch_viewer as sketch_viewer
+    from sked_ns.drawing.sketching import SketchSession
+    from sked_ns.sketches.cameras import PinholeCamera
+    from sked_ns.sketches.sketch_set import DataparserTransform
 
     with socket.socket() as sock:
         sock.bind(("127.0.0.1", 0))

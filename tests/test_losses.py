@@ -7,7 +7,7 @@ import math
 import pytest
 import torch
 
-from sked_ns.losses import (ALPHA_EPS, PROBABILITY_EPS, REFERENCE_SKETCH_COVERAGE, new_mass_loss, preservation_loss,
+from sked_ns.method.losses import (ALPHA_EPS, PROBABILITY_EPS, REFERENCE_SKETCH_COVERAGE, new_mass_loss, preservation_loss,
                             silhouette_loss, sparsity_loss)
 
 DELTA = 0.07
@@ -167,7 +167,7 @@ class _FarIsKept:
 
 def test_a_wall_behind_the_sketch_does_not_fill_it():
     # Two rays, two samples each: near (x = 0.5, editable) and far (x = 2, kept). Ray 0 sees only the opaque wall.
-    from sked_ns.core import SkedMixin
+    from sked_ns.models.nerf.field_edit import SkedMixin
 
     positions = torch.tensor([[[0.5, 0, 0], [2.0, 0, 0]]]).expand(2, 2, 3)
     weights = torch.tensor([[[0.0], [1.0]], [[0.6], [0.4]]], requires_grad=True)

@@ -7,7 +7,7 @@ import math
 import pytest
 import torch
 
-from sked_ns.metrics import IOS_THRESHOLDS, intersection_over_sketch, psnr_outside, ssim_outside
+from sked_ns.evaluation.metrics import IOS_THRESHOLDS, intersection_over_sketch, psnr_outside, ssim_outside
 
 
 def test_ios_thresholds_are_the_papers():
@@ -54,7 +54,7 @@ def test_ssim_outside_known_answers():
 
 
 def test_psnr_inside_looks_only_at_the_sketch():
-    from sked_ns.metrics import psnr_inside
+    from sked_ns.evaluation.metrics import psnr_inside
 
     mask = torch.zeros(8, 8, dtype=torch.bool)
     mask[2:4, 2:6] = True

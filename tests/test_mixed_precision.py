@@ -17,8 +17,8 @@ from nerfstudio.engine.schedulers import ExponentialDecaySchedulerConfig
 from torch.nn import Parameter
 
 from sked_ns.guidance import RenderedView, StableDiffusionGuidanceConfig
-from sked_ns.safe_step import INITIAL_LOSS_SCALE, GuardedGradScaler, GuardedOptimizers, StepGuard
-from sked_ns.trainer import SkedTrainer
+from sked_ns.engine.safe_step import INITIAL_LOSS_SCALE, GuardedGradScaler, GuardedOptimizers, StepGuard
+from sked_ns.engine.trainer import SkedTrainer
 from tiny_sd import build_tiny_stable_diffusion
 
 GUIDANCE_SCALE = 100.0

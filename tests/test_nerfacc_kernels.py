@@ -14,7 +14,8 @@ from pathlib import Path
 import pytest
 import torch
 
-from sked_ns import nerfacc_backend, nerfacc_kernels
+from sked_ns.models.nerf import nerfacc_backend
+from sked_ns.models.nerf import nerfacc_kernels
 
 GLOBAL_LERP = re.compile(r"(?<![\w:.])lerp\s*\(")
 
@@ -203,8 +204,10 @@ def test_every_nerfacc_kernel_call_gets_the_patched_build(fake_cuda, tmp_path):
     built = types.SimpleNamespace(traverse_grids=lambda *args: ("traversed", args))
     calls = []
     fake_cuda.setattr(nerfacc_kernels, "build_patched", lambda: calls.append(1) or built)
+    fake_cuda.delitem(sys.modules, nerfacc_backend.BACKEND, raising=False)
+    nerfacc_backend.install_lazy_backend()
     backend = sys.modules[nerfacc_backend.BACKEND]
-    assert isinstance(backend, nerfacc_backend.LazyBackend), "installed at plugin import, nothing built yet"
+    assert isinstance(backend, nerfacc_backend.LazyBackend), "installed, nothing built yet"
     assert nerfacc.cuda.traverse_grids(1, 2) == ("traversed", (1, 2))
     assert nerfacc.cuda.traverse_grids(3) == ("traversed", (3,))
     assert calls == [1], "built once per process"
@@ -216,16 +219,37 @@ def test_a_nerfacc_kernel_call_without_cuda_is_explained(monkeypatch):
 
     monkeypatch.setattr(nerfacc_kernels, "_status", None)
     monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    monkeypatch.delitem(sys.modules, nerfacc_backend.BACKEND, raising=False)
+    nerfacc_backend.install_lazy_backend()
     with pytest.raises(RuntimeError, match="CUDA only"):
         nerfacc.cuda.traverse_grids()
 
 
-def test_every_command_imports_the_plugin_first():
-    """ns-* commands load sked_ns through the method registry (and an edit's config.yml names
-    sked_ns classes); sked-* commands are sked_ns modules: all run sked_ns/__init__.py, which
-    installs the lazy backend before anything can call a kernel."""
-    project = tomllib.loads((Path(__file__).parents[1] / "pyproject.toml").read_text())["project"]
-    targets = list(project["scripts"].values()) + list(project["entry-points"]["nerfstudio.method_configs"].values())
-    assert targets and all(target.startswith("sked_ns.") for target in targets), targets
-    init = (Path(nerfacc_kernels.__file__).parent / "__init__.py").read_text()
-    assert "install_lazy_backend()" in init
+def test_the_plugin_leaves_stock_nerfacc_alone():
+    """Every ns-* command imports the plugin (method registry); a stock `ns-train instant-ngp` must still get
+    nerfacc's own backend, untouched."""
+    probe = ("import sys; from nerfstudio.plugins.registry import discover_methods; methods, _ = discover_methods(); "
+             "assert 'sked' in methods and 'instant-ngp' in methods; import sked_ns.models.nerf.ngp; "
+             "print('nerfacc.cuda._backend' in sys.modules)")
+    result = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, timeout=300)
+    assert result.returncode == 0, result.stderr[-2000:]
+    assert result.stdout.split()[-1] == "False"
+
+
+def test_a_sked_ngp_model_installs_the_nerfacc_stand_in_itself(monkeypatch):
+    """ns-render / ns-viewer of a SKED instant-ngp edit build its model: that is where the stand-in goes in."""
+    from sked_ns.models.nerf.ngp import SkedNGPModel
+
+    class Built(Exception):
+        pass
+
+    def stop(self):
+        raise Built
+
+    monkeypatch.delitem(sys.modules, nerfacc_backend.BACKEND, raising=False)
+    model = SkedNGPModel.__new__(SkedNGPModel)
+    object.__setattr__(model, "config", types.SimpleNamespace(beta=1.0))
+    monkeypatch.setattr(SkedNGPModel, "_scaled_config", stop)
+    with pytest.raises(Built):
+        model.populate_modules()
+    assert isinstance(sys.modules[nerfacc_backend.BACKEND], nerfacc_backend.LazyBackend)

@@ -8,13 +8,13 @@ import pytest
 import torch
 from reference import file_digests
 
-from sked_ns.base_scene import read_model_state
-from sked_ns.edit_run import edit_config, resume_config, run_edit
+from sked_ns.method.frozen_base import read_model_state
+from sked_ns.engine.edit_run import edit_config, resume_config, run_edit
 from sked_ns.guidance import guidance_name
-from sked_ns.metrics import intersection_over_sketch, psnr_outside
-from sked_ns.ngp_model import SkedNGPModel, SkedNGPModelConfig
-from sked_ns.render import load_pipeline, render_at, render_base_at, resized_mask
-from sked_ns.trainer import resolve_edit
+from sked_ns.evaluation.metrics import intersection_over_sketch, psnr_outside
+from sked_ns.models.nerf.ngp import SkedNGPModel, SkedNGPModelConfig
+from sked_ns.evaluation.render import load_pipeline, render_at, render_base_at, resized_mask
+from sked_ns.engine.trainer import resolve_edit
 
 ITERATIONS = 60
 
@@ -103,7 +103,7 @@ def test_ngp_base_untouched_and_frozen(ngp_scene, ngp_edited):
 def test_ngp_edit_outputs_preservation_weight_and_resumes(ngp_scene, ngp_edited, tmp_path):
     pipeline = load_pipeline(ngp_edited["run"])
     view = pipeline.model.sketch_set.views[0]
-    from sked_ns.sketches import sketch_view_at
+    from sked_ns.sketches.sketch_set import sketch_view_at
 
     camera = sketch_view_at(view, 24)[0]
     with torch.no_grad():

@@ -9,11 +9,11 @@ import numpy as np
 import pytest
 import torch
 
-from sked_ns import novel_views
-from sked_ns.demo import scene as demo_scene
-from sked_ns.edit_run import edit_config, run_edit
-from sked_ns.render import load_pipeline
-from sked_ns.sketches import DataparserTransform
+from sked_ns.evaluation import novel_views
+from sked_ns.demo.scenes import sphere as demo_scene
+from sked_ns.engine.edit_run import edit_config, run_edit
+from sked_ns.evaluation.render import load_pipeline
+from sked_ns.sketches.sketch_set import DataparserTransform
 
 TARGET_VIEWS = ((45.0, 20.0), (200.0, 35.0), (300.0, 10.0))
 
@@ -105,7 +105,7 @@ def test_a_hazy_edit_fails_the_novel_view_metrics(small_edit, tmp_path):
 
 
 def test_sked_eval_scores_the_eval_split_and_a_target(small_edit, tmp_path):
-    from sked_ns.evaluate import evaluate
+    from sked_ns.evaluation.evaluate import evaluate
 
     metrics = evaluate(small_edit["run"], resolution=32, novel_resolution=32)["metrics"]
     # Region IoS counts only what lies near the sketches: the base's sphere under the hat barely counts.

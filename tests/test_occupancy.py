@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from sked_ns.occupancy import (
+from sked_ns.models.nerf.occupancy import (
     PortableOccGridEstimator, march_grid, packed_exclusive_transmittance, render_weights, sample_agreement,
 )
 
@@ -116,7 +116,7 @@ def test_march_grid_steps_as_nerfacc(rng, step, cone_angle):
 
 def test_march_grid_with_a_small_candidate_budget(rng, monkeypatch):
     """Rays processed in chunks give the same samples."""
-    import sked_ns.occupancy as occupancy
+    import sked_ns.models.nerf.occupancy as occupancy
 
     grid = _grid(rng)
     origins = torch.from_numpy(rng.uniform(-3, 3, size=(30, 3)))

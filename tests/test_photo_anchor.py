@@ -7,7 +7,7 @@ import torch
 from nerfstudio.cameras.camera_optimizers import CameraOptimizerConfig
 from nerfstudio.cameras.rays import RayBundle
 
-from sked_ns.photo_anchor import correct_poses, editable_box, rays_away_from_edit
+from sked_ns.method.photo_anchor import correct_poses, editable_box, rays_away_from_edit
 
 CENTRE = torch.tensor([0.3, -0.2, 0.1])
 
@@ -52,7 +52,7 @@ def test_pose_corrections_match_nerfstudio():
 
 
 def test_photos_the_base_does_not_explain_turn_the_anchor_off_loudly():
-    from sked_ns.photo_anchor import SkedPhotoWarning, check_base_explains_photos
+    from sked_ns.method.photo_anchor import SkedPhotoWarning, check_base_explains_photos
 
     generator = torch.Generator().manual_seed(0)
     photos = torch.rand(400, 3, generator=generator)

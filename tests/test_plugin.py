@@ -9,8 +9,8 @@ from pathlib import Path
 
 import pytest
 
-from sked_ns.config import sked_method
-from sked_ns.nerfacto_model import SkedNerfactoModelConfig
+from sked_ns.engine.presets import sked_method
+from sked_ns.models.nerf.nerfacto import SkedNerfactoModelConfig
 
 
 def test_entry_point_registers_sked():

@@ -11,14 +11,14 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from sked_ns.preservation import (
+from sked_ns.method.preservation import (
     SketchDistanceField,
     _sketch_distance,
     check_beta,
     preservation_weight,
     sketch_distance_transform,
 )
-from sked_ns.sketches import SketchView
+from sked_ns.sketches.sketch_set import SketchView
 from conftest import random_blob_mask, random_view
 from reference import exact_distance_one, near_pixel_edge, sketch_distance_one
 
@@ -157,7 +157,7 @@ def test_lookup_is_float32_under_mixed_precision(rng, device):
 @pytest.mark.parametrize("scale", [1, 2])
 def test_a_nerfstudio_ray_through_a_sketch_pixel_has_distance_zero(rng, scale):
     """Ties the projection to nerfstudio's own: rays of the (rescaled) sketch camera hit the mask pixel they came from."""
-    from sked_ns.sketches import sketch_view_at
+    from sked_ns.sketches.sketch_set import sketch_view_at
 
     width, height, (row, col) = 48, 36, (10, 30)
     view = random_view(rng, width, height, "v")

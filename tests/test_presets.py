@@ -12,8 +12,8 @@ from pathlib import Path
 import pytest
 import torch
 
-from sked_ns.config import PRESETS, read_preset
-from sked_ns.trainer import resolve_edit
+from sked_ns.engine.presets import PRESETS, read_preset
+from sked_ns.engine.trainer import resolve_edit
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -39,7 +39,7 @@ def test_every_optimizer_is_adam_with_the_authors_betas_also_after_config_yml():
     import yaml
     from nerfstudio.engine.optimizers import Optimizers
 
-    from sked_ns.config import sked_trainer_config
+    from sked_ns.engine.presets import sked_trainer_config
 
     for name in PRESETS:
         config = sked_trainer_config(read_preset(name), name)
@@ -75,12 +75,12 @@ def test_presets_ship_in_the_wheel(tmp_path):
         entry_points = next(archive.read(n).decode() for n in names if n.endswith("entry_points.txt"))
     for name in PRESETS:
         assert f"sked_ns/configs/{name}.yml" in names
-        assert f"{name} = sked_ns.config:" in entry_points
-    assert "sked_ns/ngp_model.py" in names and "sked_ns/guidance/stable_diffusion.py" in names
+        assert f"{name} = sked_ns.engine.presets:" in entry_points
+    assert "sked_ns/models/nerf/ngp.py" in names and "sked_ns/guidance/stable_diffusion.py" in names
 
 
 def test_samples_per_ray_scale_changes_the_model_not_the_saved_config(scene, tmp_path):
-    from sked_ns.edit_run import edit_config
+    from sked_ns.engine.edit_run import edit_config
 
     config = edit_config(scene["base"], scene["data"], scene["sketches"], tmp_path, iterations=2)
     config.pipeline.model.samples_per_ray_scale = 0.5
@@ -93,7 +93,7 @@ def test_samples_per_ray_scale_changes_the_model_not_the_saved_config(scene, tmp
 
 
 def test_samples_per_ray_scale_shortens_the_ngp_step(ngp_scene, tmp_path):
-    from sked_ns.edit_run import edit_config
+    from sked_ns.engine.edit_run import edit_config
 
     config = edit_config(ngp_scene["base"], ngp_scene["data"], ngp_scene["sketches"], tmp_path, iterations=2)
     config.pipeline.model.samples_per_ray_scale = 2.0
@@ -111,7 +111,7 @@ def test_samples_per_ray_scale_shortens_the_ngp_step(ngp_scene, tmp_path):
     ("text-only", {"preservation_loss", "silhouette_loss"}),
 ])
 def test_ablation_switches_drop_their_losses(scene, tmp_path, ablation, dropped):
-    from sked_ns.edit_run import edit_config
+    from sked_ns.engine.edit_run import edit_config
 
     config = edit_config(scene["base"], scene["data"], scene["sketches"], tmp_path, iterations=2)
     config.pipeline.model.ablation = ablation
@@ -129,7 +129,7 @@ def test_ablation_switches_drop_their_losses(scene, tmp_path, ablation, dropped)
 
 def test_learning_rate_decay_spans_the_edit_the_user_asked_for(scene, tmp_path):
     """`ns-train sked --max-num-iterations 300`: the rates still reach 0.1x at the end, not at step 10,000."""
-    from sked_ns.config import sked_method
+    from sked_ns.engine.presets import sked_method
 
     config = copy.deepcopy(sked_method.config)
     config.load_dir, config.sketches, config.max_num_iterations = scene["base"], scene["sketches"], 300

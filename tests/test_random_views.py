@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 import torch
 
-from sked_ns.random_views import RandomViewSampler, orbit_position
-from sked_ns.datamanager import SkedDataManagerConfig
+from sked_ns.sketches.random_views import RandomViewSampler, orbit_position
+from sked_ns.engine.datamanager import SkedDataManagerConfig
 
 CENTRE = np.array([0.3, -0.2, 0.5])
 
@@ -64,7 +64,7 @@ def test_every_view_looks_at_the_centre_and_front_faces_the_first_sketch():
 
 
 def test_look_at_jitter_moves_the_target_in_every_direction(monkeypatch):
-    from sked_ns import random_views
+    from sked_ns.sketches import random_views
 
     targets = []
     look_at = random_views.look_at
@@ -114,8 +114,8 @@ def test_a_large_edit_or_no_framing_keeps_the_authors_range(edit_radius, edit_fi
 
 def test_edit_fill_is_validated_and_a_frame_filled_by_the_edit_warns():
     from sked_ns.errors import SkedUserError
-    from sked_ns.options import SkedOptions
-    from sked_ns.validation import check_options
+    from sked_ns.method.options import SkedOptions
+    from sked_ns.method.validation import check_options
 
     assert SkedDataManagerConfig().edit_fill == 0.7
     for bad in (-0.1, 1.5, float("nan")):

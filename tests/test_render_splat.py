@@ -6,7 +6,7 @@ import pytest
 import torch
 from test_splat_model import edit_pipeline, splat_scene  # noqa: F401  (the tiny saved splatfacto run)
 
-from sked_ns.render import load_pipeline, render_camera
+from sked_ns.evaluation.render import load_pipeline, render_camera
 
 pytestmark = pytest.mark.filterwarnings("ignore::UserWarning")
 

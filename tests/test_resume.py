@@ -14,13 +14,13 @@ import pytest
 import torch
 import yaml
 
-from sked_ns.base_scene import resolve_base
-from sked_ns.config import preset_config
+from sked_ns.engine.base_scene import resolve_base
+from sked_ns.engine.resume import preset_config
 from sked_ns.demo.reference_guidance import ReferenceGuidanceConfig
-from sked_ns.edit_run import resume_config
+from sked_ns.engine.edit_run import resume_config
 from sked_ns.errors import SkedUserError, check_writable_folder
-from sked_ns.resume import resumed_config
-from sked_ns.trainer import SkedTrainer, check_run_settings
+from sked_ns.engine.resume import resumed_config
+from sked_ns.engine.trainer import SkedTrainer, check_run_settings
 
 
 def saved_edit() -> object:
@@ -238,9 +238,9 @@ def test_output_folder_under_a_file_is_refused_with_its_flag(tmp_path, monkeypat
 @pytest.fixture
 def inputs_pass(monkeypatch):
     """A fake_run has no data nor sketches: the inputs' checks (tests/test_cli_errors.py) pass, the writing is tested."""
-    import sked_ns.trainer
+    import sked_ns.engine.trainer
 
-    monkeypatch.setattr(sked_ns.trainer, "check_edit_inputs", lambda config: None)
+    monkeypatch.setattr(sked_ns.engine.trainer, "check_edit_inputs", lambda config: None)
 
 
 def resumed_into(run: Path, output_dir: Path, timestamp: str = "{timestamp}"):
@@ -317,8 +317,8 @@ def saved_splat_edit() -> object:
     """saved_edit() of a splatfacto base: the model and optimisers start_edit gives a splat edit."""
     from nerfstudio.models.splatfacto import SplatfactoModelConfig
 
-    from sked_ns.splat_model import splat_optimizers
-    from sked_ns.trainer import edit_model_config
+    from sked_ns.models.splat.rates import splat_optimizers
+    from sked_ns.engine.trainer import edit_model_config
 
     config = saved_edit()
     config.pipeline.model = edit_model_config(config.pipeline.model, SplatfactoModelConfig())

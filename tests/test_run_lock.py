@@ -21,8 +21,8 @@ import pytest
 import torch
 
 from sked_ns import run_lock
-from sked_ns.base_scene import dataparser_name, resolve_base
-from sked_ns.edit_run import edit_config
+from sked_ns.engine.base_scene import dataparser_name, resolve_base
+from sked_ns.engine.edit_run import edit_config
 from sked_ns.errors import SkedUserError
 
 HOLD = "import sys, time; from sked_ns.run_lock import hold; hold(sys.argv[1], ''); print('held', flush=True); time.sleep(900)"
@@ -55,7 +55,7 @@ def tiny_edit(scene, output: Path, prompt: str):
 
 FIRST_EDIT = """import sys, time
 from pathlib import Path
-from sked_ns.edit_run import edit_config
+from sked_ns.engine.edit_run import edit_config
 base, data, sketches, output = map(Path, sys.argv[1:5])
 config = edit_config(base, data, sketches, output, prompt="the first", iterations=2, guidance_resolution=16,
                      silhouette_resolution=16)
@@ -104,12 +104,12 @@ def test_resuming_into_a_run_folder_being_written_is_refused(tmp_path, monkeypat
     """`ns-train sked --load-dir RUN --timestamp <its own>` (what sked-batch resumes with) while RUN still runs."""
     import yaml
 
-    import sked_ns.trainer
+    import sked_ns.engine.trainer
 
-    monkeypatch.setattr(sked_ns.trainer, "check_edit_inputs", lambda config: None)  # a fake run: no data, no sketches
+    monkeypatch.setattr(sked_ns.engine.trainer, "check_edit_inputs", lambda config: None)  # a fake run: no data, no sketches
     from test_resume import fake_run, saved_edit
 
-    from sked_ns.edit_run import resume_config
+    from sked_ns.engine.edit_run import resume_config
 
     saved = saved_edit()
     saved.output_dir, saved.experiment_name, saved.timestamp, saved.max_num_iterations = tmp_path, "scene", "run", 60
@@ -212,7 +212,7 @@ def test_a_checkpoint_another_writer_broke_says_so(tmp_path, monkeypatch):
 
 
 def test_sked_eval_leaves_outputs_another_sked_eval_writes(tmp_path, monkeypatch):
-    from sked_ns import evaluate
+    from sked_ns.evaluation import evaluate
 
     run = tmp_path / "run"
     run.mkdir()
@@ -235,7 +235,7 @@ def test_sked_eval_leaves_outputs_another_sked_eval_writes(tmp_path, monkeypatch
 
 def test_a_sketch_set_has_one_writer(tmp_path, rng):
     from conftest import random_view
-    from sked_ns.sketches import SketchSet, load_sketch_set, save_sketch_set
+    from sked_ns.sketches.sketch_set import SketchSet, load_sketch_set, save_sketch_set
 
     sketches = SketchSet(views=[random_view(rng, 32, 24), random_view(rng, 32, 24)])
     other = holding(tmp_path / "hat", WRITE)  # another sked-sketch saving there

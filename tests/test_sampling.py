@@ -5,9 +5,9 @@ from __future__ import annotations
 import torch
 from nerfstudio.field_components.field_heads import FieldHeadNames
 
-from sked_ns.edit_run import edit_config, run_edit
-from sked_ns.render import load_pipeline
-from sked_ns.trainer import resolve_edit
+from sked_ns.engine.edit_run import edit_config, run_edit
+from sked_ns.evaluation.render import load_pipeline
+from sked_ns.engine.trainer import resolve_edit
 
 
 def _pipeline(scene, tmp_path, **model_settings):
@@ -86,7 +86,7 @@ def test_ngp_base_renders_deterministically_with_its_own_density(ngp_scene, tmp_
 
 
 def _sketch_rays(model):
-    from sked_ns.sketches import sketch_view_at
+    from sked_ns.sketches.sketch_set import sketch_view_at
 
     camera, _ = sketch_view_at(model.sketch_set.views[0], 24)
     return camera.generate_rays(camera_indices=0, keep_shape=True).flatten()
@@ -119,7 +119,7 @@ def test_nerfacto_warmup_boost_lands_only_in_the_sketches_visual_hull(scene, tmp
 
 
 def test_ngp_switches_on_only_the_cells_the_visual_hull_reaches(ngp_scene, tmp_path):
-    from sked_ns.occupancy import occupied
+    from sked_ns.models.nerf.occupancy import occupied
 
     model = _pipeline(ngp_scene, tmp_path).model
     grid = model.occupancy_grid

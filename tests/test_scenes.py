@@ -6,12 +6,12 @@ import numpy as np
 import pytest
 import torch
 
-from sked_ns.demo import scene as demo_scene
-from sked_ns.edit_box import compute_edit_box
-from sked_ns.edit_run import edit_config, run_edit
-from sked_ns.metrics import psnr_outside
-from sked_ns.render import load_pipeline, render_at, resized_mask
-from sked_ns.sketches import load_sketch_set, save_sketch_set
+from sked_ns.demo.scenes import sphere as demo_scene
+from sked_ns.method.edit_box import compute_edit_box
+from sked_ns.engine.edit_run import edit_config, run_edit
+from sked_ns.evaluation.metrics import psnr_outside
+from sked_ns.evaluation.render import load_pipeline, render_at, resized_mask
+from sked_ns.sketches.sketch_set import load_sketch_set, save_sketch_set
 
 
 def test_three_scenes_of_different_shapes_sizes_and_baselines():
@@ -66,11 +66,12 @@ def test_reference_edit_reaches_each_target(scene, tmp_path, name):
 
 @pytest.mark.parametrize("name", ["vase", "crate"])
 def test_held_out_scenes_write_base_target_and_sketches(name, tmp_path):
-    from sked_ns.demo import benchmark_scenes
+    from sked_ns.demo.scenes import catalogue
+    from sked_ns.demo.scenes import objects as benchmark_scenes
     import json
 
     scene = benchmark_scenes.SCENES[name]
-    paths = benchmark_scenes.write_benchmark(name, tmp_path, count=12, size=32)
+    paths = catalogue.write_benchmark(name, tmp_path, count=12, size=32)
     data = json.loads((paths["data"] / "transforms.json").read_text())
     target = json.loads((paths["target"] / "transforms.json").read_text())
     assert len(data["frames"]) == 12
@@ -85,7 +86,7 @@ def test_held_out_scenes_write_base_target_and_sketches(name, tmp_path):
     points = torch.rand(300_000, 3) * 2 - 1
     on_edit = points[scene.edit_sdf(points) < 0]
     assert len(on_edit) > 50 and compute_edit_box(sketches.views).contains(on_edit.double()).all()
-    from sked_ns.demo.benchmark_scenes import union
+    from sked_ns.demo.scenes.objects import union
 
     base_sdf = union(scene.base_parts)[0]
     assert base_sdf(on_edit).min() < 0.02, "the edit touches an existing surface"

@@ -11,7 +11,7 @@ import cv2
 import numpy as np
 import pytest
 
-from sked_ns.sketches import (
+from sked_ns.sketches.sketch_set import (
     FRAMES,
     DataparserTransform,
     SketchSet,
@@ -161,7 +161,7 @@ def test_bounding_box_covers_every_contour():
 
 
 def test_dataparser_transform_inverts_and_maps_points(rng):
-    from sked_ns.demo.scene import orbit_pose
+    from sked_ns.demo.scenes.sphere import orbit_pose
 
     angle = 0.7
     rotation = np.array([[1, 0, 0], [0, np.cos(angle), -np.sin(angle)], [0, np.sin(angle), np.cos(angle)]])
@@ -202,7 +202,7 @@ def test_a_mask_on_a_distorted_photo_lands_where_nerfstudio_traces_that_pixel(tm
     import torch
     from nerfstudio.cameras.cameras import Cameras, CameraType
 
-    from sked_ns.cameras import project
+    from sked_ns.sketches.cameras import project
 
     folder, photo = _distorted_set(tmp_path, rng, coefficients, pixel)
     loaded = load_sketch_set(folder).views[0]
@@ -280,7 +280,7 @@ def test_a_mask_that_cannot_be_written_is_an_error(tmp_path, rng):
 
 def _demo_frame():
     """The demo's training cameras in the model frame, under the transform nerfstudio's dataparser gives it."""
-    from sked_ns.demo import scene
+    from sked_ns.demo.scenes import sphere as scene
 
     transform = DataparserTransform(np.concatenate([np.eye(3), [[0.0], [0.0], [-1.08]]], axis=1), 0.431)
     positions = np.stack([transform.apply(pose)[:, 3] for pose in scene.demo_camera_poses(24)])
@@ -288,8 +288,8 @@ def _demo_frame():
 
 
 def test_a_sketch_set_declared_in_the_wrong_frame_is_refused_naming_the_field_and_value(tmp_path):
-    from sked_ns.datamanager import SKETCH_FRAME, TRAINING_CAMERAS, model_frame_sketches
-    from sked_ns.demo import scene
+    from sked_ns.engine.datamanager import SKETCH_FRAME, TRAINING_CAMERAS, model_frame_sketches
+    from sked_ns.demo.scenes import sphere as scene
 
     transform, positions, centre = _demo_frame()
     demo = scene.demo_sketch_set(size=64)  # data-frame poses
@@ -302,8 +302,8 @@ def test_a_sketch_set_declared_in_the_wrong_frame_is_refused_naming_the_field_an
 
 
 def test_a_frame_is_not_second_guessed_where_both_readings_fit(rng):
-    from sked_ns.demo import scene
-    from sked_ns.sketches import check_declared_frame
+    from sked_ns.demo.scenes import sphere as scene
+    from sked_ns.sketches.sketch_set import check_declared_frame
 
     _, positions, centre = _demo_frame()
     demo = scene.demo_sketch_set(size=64)

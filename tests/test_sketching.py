@@ -6,9 +6,9 @@ import cv2
 import numpy as np
 import pytest
 
-from sked_ns.demo import scene as demo_scene
-from sked_ns.sketches import DataparserTransform, load_sketch_set
-from sked_ns.sketching import (
+from sked_ns.demo.scenes import sphere as demo_scene
+from sked_ns.sketches.sketch_set import DataparserTransform, load_sketch_set
+from sked_ns.drawing.sketching import (
     CANVASES_JSON,
     PinholeCamera,
     SketchSession,

@@ -10,9 +10,9 @@ import pytest
 import torch
 import yaml
 
-from sked_ns.demo import scene as demo_scene
+from sked_ns.demo.scenes import sphere as demo_scene
 from sked_ns.demo.splat_base import SplatFit, fit_demo_splat_base, last_fit
-from sked_ns.nerfacto_model import _without_lpips
+from sked_ns.models.nerf.nerfacto import _without_lpips
 
 FIT = SplatFit(steps=40, num_gaussians=300, warmup_length=20, refine_every=10, sh_degree_interval=20,
                seed_opacity=0.5)  # opaque seeds: a visible gain in 40 steps
@@ -185,7 +185,7 @@ def test_sked_demo_edits_a_splat_base_and_sked_eval_scores_it(tmp_path):
         # and the rest is the base's: 3,000 seeds 24.2 dB in one view after six iterations (still a faint haze), 250: 25.6
         assert view["psnr_outside"] > 23
     assert summary["novel_views"]["mean"]["psnr_keep"] > 30
-    from sked_ns.evaluate import evaluate
+    from sked_ns.evaluation.evaluate import evaluate
 
     scores = evaluate(Path(summary["edit_run"]), resolution=32, novel_resolution=32, clip_views=2, clip_resolution=16)["metrics"]
     assert scores["mean"]["psnr_outside"] > 23 and scores["novel_views"]["mean"]["psnr_keep"] > 30  # 24.5 (above)

@@ -1,4 +1,4 @@
-"""The splatfacto edit model (sked_ns/splat_model.py) on a tiny splat base saved as `ns-train splatfacto` saves one.
+"""The splatfacto edit model (sked_ns/models/splat/model.py) on a tiny splat base saved as `ns-train splatfacto` saves one.
 
 The base is Gaussians on the demo sphere (not fitted: these tests need a real run folder, not a good scene); the
 renders are 16-24 px. Each loss has a test that fails without it.
@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 import torch
 
-from sked_ns.demo import scene as demo_scene
+from sked_ns.demo.scenes import sphere as demo_scene
 
 pytestmark = pytest.mark.filterwarnings("ignore::UserWarning")
 
@@ -29,8 +29,8 @@ def splat_scene(tmp_path_factory):
     from nerfstudio.models.splatfacto import RGB2SH
 
     from sked_ns.demo.splat_base import SplatFit, save_run, splatfacto_config
-    from sked_ns.options import without_lpips
-    from sked_ns.sketches import save_sketch_set
+    from sked_ns.method.options import without_lpips
+    from sked_ns.sketches.sketch_set import save_sketch_set
 
     root = tmp_path_factory.mktemp("splat")
     demo_scene.write_demo_dataset(root / "data", num_views=8, size=40)
@@ -61,8 +61,8 @@ def splat_scene(tmp_path_factory):
 
 def edit_pipeline(scene, tmp_path, prompt=None, guidance="reference", **settings):
     """The pipeline `ns-train sked --load-dir <splat base>` sets up (not trained), with model settings."""
-    from sked_ns.edit_run import edit_config
-    from sked_ns.trainer import resolve_edit
+    from sked_ns.engine.edit_run import edit_config
+    from sked_ns.engine.trainer import resolve_edit
 
     config = edit_config(scene["base"], scene["data"], scene["sketches"], tmp_path / "out", prompt=prompt,
                          guidance=guidance, iterations=10, guidance_resolution=24, silhouette_resolution=16)
@@ -107,7 +107,7 @@ def sked_losses(pipeline, step: int = 0):
 
 
 def test_the_base_splits_into_kept_and_editable_and_the_edit_starts_as_the_base(splat_scene, tmp_path):
-    from sked_ns.splat_model import SkedSplatModel
+    from sked_ns.models.splat.model import SkedSplatModel
 
     _, pipeline = edit_pipeline(splat_scene, tmp_path, num_seeds=0)
     model = pipeline.model
@@ -267,7 +267,7 @@ def test_ns_train_sked_edits_a_splatfacto_run_exports_it_and_resumes(splat_scene
     from nerfstudio.scripts.render import RenderInterpolated
     from plyfile import PlyData
 
-    from sked_ns.edit_run import edit_config, resume_config, run_edit
+    from sked_ns.engine.edit_run import edit_config, resume_config, run_edit
 
     config = edit_config(splat_scene["base"], splat_scene["data"], splat_scene["sketches"], tmp_path / "out",
                          iterations=3, steps_per_save=2, guidance_resolution=24, silhouette_resolution=16)
@@ -332,7 +332,7 @@ def test_viewmat_is_splatfactos_camera_convention():
     """The one world-to-camera map the splat edit and the splat-base fitter use equals splatfacto's own."""
     from nerfstudio.models.splatfacto import get_viewmat
 
-    from sked_ns.cameras import viewmat
+    from sked_ns.sketches.cameras import viewmat
 
     camera_to_world = torch.randn(4, 3, 4, generator=torch.Generator().manual_seed(0))
     reference = getattr(get_viewmat, "__wrapped__", get_viewmat)  # splatfacto compiles it
@@ -340,7 +340,7 @@ def test_viewmat_is_splatfactos_camera_convention():
 
 
 def test_edit_rates_let_a_seed_form_in_a_third_of_the_edit_and_stay_finite():
-    from sked_ns.splat_model import FORMATION_SHARE, SPLATFACTO_RATES, edit_rates, seed_ranges
+    from sked_ns.models.splat.rates import FORMATION_SHARE, SPLATFACTO_RATES, edit_rates, seed_ranges
 
     for iterations in (100, 500):
         rates, ranges = edit_rates(iterations, 0.005), seed_ranges(0.005)
@@ -353,9 +353,9 @@ def test_edit_rates_let_a_seed_form_in_a_third_of_the_edit_and_stay_finite():
 
 
 def test_a_typed_splat_learning_rates_reaches_the_optimisers(splat_scene, tmp_path):
-    from sked_ns.edit_run import edit_config
-    from sked_ns.splat_model import SPLATFACTO_RATES, edit_rates
-    from sked_ns.trainer import resolve_edit
+    from sked_ns.engine.edit_run import edit_config
+    from sked_ns.models.splat.rates import SPLATFACTO_RATES, edit_rates
+    from sked_ns.engine.trainer import resolve_edit
 
     for choice in ("edit", "splatfacto"):
         config = edit_config(splat_scene["base"], splat_scene["data"], splat_scene["sketches"], tmp_path / choice,
@@ -369,7 +369,7 @@ def test_a_typed_splat_learning_rates_reaches_the_optimisers(splat_scene, tmp_pa
 def test_seeds_turn_opaque_and_take_a_colour_within_a_short_edit(splat_scene, tmp_path):
     """30 steps of an edit (L_sil and reference guidance towards the red hat): under the edit's rates the seeds fill
     the sketches and leave grey; under splatfacto's (sized for 30,000 steps) they stay a faint grey haze."""
-    from sked_ns.splat_model import splat_optimizers
+    from sked_ns.models.splat.rates import splat_optimizers
 
     steps, formed = 30, {}
     for choice in ("edit", "splatfacto"):
@@ -386,7 +386,7 @@ def test_seeds_turn_opaque_and_take_a_colour_within_a_short_edit(splat_scene, tm
 
 
 def test_area_downsample_is_the_block_mean():
-    from sked_ns.splat_model import area_downsample
+    from sked_ns.models.splat.model import area_downsample
 
     image = torch.rand(12, 18, 4)
     for factor in (1, 2, 3):
@@ -425,7 +425,7 @@ def test_supersampled_training_renders_keep_the_guidance_reference_sampled_as_th
 def test_random_views_frame_the_edit_box_the_pipeline_computed(splat_scene, tmp_path):
     """`ns-train sked` hands the datamanager the edit box: its bounding sphere sizes the random views' field of view,
     and each view's focal length says the narrowed one (edit-fill 0: the authors' 40-80 deg)."""
-    from sked_ns.random_views import focal_from_fov
+    from sked_ns.sketches.random_views import focal_from_fov
 
     for fill in (0.0, 0.7):
         config, pipeline = edit_pipeline(splat_scene, tmp_path / str(fill), num_seeds=0)
@@ -451,7 +451,7 @@ def test_the_base_is_judged_on_its_own_photos_at_their_resolution(splat_scene, t
 
     import cv2
 
-    from sked_ns.photo_anchor import SkedPhotoWarning
+    from sked_ns.method.photo_anchor import SkedPhotoWarning
 
     data = tmp_path / "data"
     shutil.copytree(splat_scene["data"], data)

@@ -3,13 +3,19 @@
 from __future__ import annotations
 
 import math
+import sys
+from pathlib import Path
 
 import pytest
 import torch
 
 from reference import splat_render_brute_force
-from sked_ns import splat_render
-from sked_ns.splat_render import rasterize
+from sked_ns.models.splat import projection
+from sked_ns.models.splat import torch_rasterizer as splat_render
+from sked_ns.models.splat.rasterize import rasterize
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+import splat_agreement  # noqa: E402  (benchmarks/: only the agreement check uses it)
 
 INPUTS = ("means", "quats", "scales", "opacities", "colors")
 
@@ -211,7 +217,7 @@ def test_gsplat_tile_rule_bounds_a_gaussian():
 def test_means2d_gradient_matches_finite_differences():
     """The compositor's analytic backward (means2d, conics, colours, opacities) against central differences."""
     scene = make_scene(n=12, n_cameras=1, width=20, height=20, seed=10, scale=0.3)
-    radii, means2d, depths, conics, opacities = splat_render.project(
+    radii, means2d, depths, conics, opacities = projection.project(
         scene["means"], scene["quats"], scene["scales"], scene["opacities"], scene["viewmats"], scene["Ks"], 20, 20
     )
     colors = scene["colors"][None]
@@ -352,23 +358,23 @@ def test_compare_with_gsplat_runs(monkeypatch):
     """gpu_check's comparison, with the CPU path standing in for gsplat: every difference is 0."""
     import gsplat.rendering
 
-    monkeypatch.setattr(gsplat.rendering, "rasterization", lambda *a, packed=True, **k: splat_render._rasterize_torch_defaults(*a, **k))
-    result = splat_render.compare_with_gsplat("cpu", n_gaussians=300, width=32, height=24)
+    monkeypatch.setattr(gsplat.rendering, "rasterization", lambda *a, packed=True, **k: splat_render.rasterize_torch_defaults(*a, **k))
+    result = splat_agreement.compare_with_gsplat("cpu", n_gaussians=300, width=32, height=24)
     assert {"image", "alpha", "grad_means", "grad_means2d", "absgrad", "grad_colors"} <= set(result)
     assert all(value == 0 for key, value in result.items() if not key.endswith("_scale"))
     assert result["image_scale"] > 0 and result["grad_means_scale"] > 0
 
     def one_percent_brighter(*args, packed=True, **kwargs):
-        render, alpha, info = splat_render._rasterize_torch_defaults(*args, **kwargs)
+        render, alpha, info = splat_render.rasterize_torch_defaults(*args, **kwargs)
         return render * 1.01, alpha, info
 
     monkeypatch.setattr(gsplat.rendering, "rasterization", one_percent_brighter)
-    result = splat_render.compare_with_gsplat("cpu", n_gaussians=300, width=32, height=24)
+    result = splat_agreement.compare_with_gsplat("cpu", n_gaussians=300, width=32, height=24)
     assert result["image"] > 0.005 and result["grad_means"] > 0 and result["alpha"] == 0
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA: compares with gsplat's kernels")
 def test_cpu_path_matches_gsplat_cuda():
-    result = splat_render.compare_with_gsplat("cuda")
+    result = splat_agreement.compare_with_gsplat("cuda")
     for key in ("image", "alpha", "grad_means", "grad_colors", "grad_opacities", "grad_means2d"):
         assert result[key] <= 1e-3 * result[f"{key}_scale"] + 1e-4, (key, result)

@@ -10,10 +10,10 @@ import numpy as np
 import pytest
 import torch
 
-from sked_ns.demo import scene as demo_scene
-from sked_ns.edit_run import edit_config
-from sked_ns.nerfacto_model import SkedSettingsWarning
-from sked_ns.sketches import SketchSet, SketchView, save_sketch_set
+from sked_ns.demo.scenes import sphere as demo_scene
+from sked_ns.engine.edit_run import edit_config
+from sked_ns.models.nerf.nerfacto import SkedSettingsWarning
+from sked_ns.sketches.sketch_set import SketchSet, SketchView, save_sketch_set
 
 ITERATIONS = 12
 

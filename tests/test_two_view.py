@@ -14,16 +14,16 @@ import numpy as np
 import pytest
 import torch
 
-from sked_ns.losses import new_mass_loss, silhouette_loss
+from sked_ns.method.losses import new_mass_loss, silhouette_loss
 
 DELTA = 0.07
 
 
 def test_the_marker_scenes_hull_is_much_larger_than_the_marker():
-    from sked_ns.demo.benchmark_scenes import SCENES
-    from sked_ns.edit_box import compute_edit_box
-    from sked_ns.hull_check import check_hull
-    from sked_ns.preservation import SketchDistanceField
+    from sked_ns.demo.scenes.objects import SCENES
+    from sked_ns.method.edit_box import compute_edit_box
+    from sked_ns.drawing.hull_check import check_hull
+    from sked_ns.method.preservation import SketchDistanceField
 
     scene = SCENES["marker"]
     views = scene.sketch_set().views
@@ -93,10 +93,10 @@ def test_l_new_alone_cannot_empty_the_sketch_rays():
 
 
 def test_sketch_ray_opacity_reads_the_pixel_each_point_projects_to():
-    from sked_ns.cameras import pixel_directions
-    from sked_ns.demo.benchmark_scenes import SCENES
-    from sked_ns.hull_carving import SketchRayOpacity
-    from sked_ns.sketches import sketch_view_at
+    from sked_ns.sketches.cameras import pixel_directions
+    from sked_ns.demo.scenes.objects import SCENES
+    from sked_ns.method.hull_carving import SketchRayOpacity
+    from sked_ns.sketches.sketch_set import sketch_view_at
 
     views = SCENES["marker"].sketch_set(64).views
     lookup = SketchRayOpacity(views, 24)
@@ -130,11 +130,11 @@ def silhouette_only_bulk(scene, tmp_path_factory):
     sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
     from hull_bulk import model_bulk
 
-    from sked_ns.demo.scene import SCENES
-    from sked_ns.edit_run import edit_config, run_edit
-    from sked_ns.metrics import intersection_over_sketch
-    from sked_ns.render import render_at, resized_mask
-    from sked_ns.sketches import DataparserTransform, load_sketch_set
+    from sked_ns.demo.scenes.sphere import SCENES
+    from sked_ns.engine.edit_run import edit_config, run_edit
+    from sked_ns.evaluation.metrics import intersection_over_sketch
+    from sked_ns.evaluation.render import render_at, resized_mask
+    from sked_ns.sketches.sketch_set import DataparserTransform, load_sketch_set
 
     root, runs = tmp_path_factory.mktemp("two-view"), {}
 

@@ -6,10 +6,11 @@ import numpy as np
 import pytest
 import torch
 
-from sked_ns.demo import unbounded_scenes
-from sked_ns.demo.benchmark_scenes import eval_indices, scene_named, visible_added_part, write_benchmark
-from sked_ns.demo.unbounded_scenes import FOCAL, SCENES, capture_pose, capture_poses, sky, trace_unbounded
-from sked_ns.random_views import look_at
+from sked_ns.demo.scenes import unbounded as unbounded_scenes
+from sked_ns.demo.scenes.objects import eval_indices, visible_added_part
+from sked_ns.demo.scenes.catalogue import scene_named, write_benchmark
+from sked_ns.demo.scenes.unbounded import FOCAL, SCENES, capture_pose, capture_poses, sky, trace_unbounded
+from sked_ns.sketches.random_views import look_at
 
 
 def test_rays_that_miss_show_the_sky_and_downward_rays_hit_the_ground_exactly():

@@ -9,12 +9,13 @@ import warnings
 import numpy as np
 import pytest
 
-from sked_ns.config import PRESETS, read_preset
-from sked_ns.datamanager import SkedDataManagerConfig
-from sked_ns.nerfacto_model import SkedNerfactoModelConfig
-from sked_ns.ngp_model import SkedNGPModelConfig
-from sked_ns.sketches import SketchSet, SketchView
-from sked_ns.validation import (SkedOptionError, SkedOptionWarning, check_options, check_sketch_pixels,
+from sked_ns.engine.presets import PRESETS, read_preset
+from sked_ns.engine.datamanager import SkedDataManagerConfig
+from sked_ns.models.nerf.nerfacto import SkedNerfactoModelConfig
+from sked_ns.models.nerf.ngp import SkedNGPModelConfig
+from sked_ns.sketches.sketch_set import SketchSet, SketchView
+from sked_ns.errors import SkedOptionError, SkedOptionWarning
+from sked_ns.method.validation import (check_options, check_sketch_pixels,
                                 warn_unusual_options)
 
 from conftest import random_pose
@@ -88,7 +89,7 @@ def test_a_photo_threshold_that_silences_the_anchor_is_warned():
 
 
 def test_resolve_edit_refuses_before_anything_is_written(tmp_path):
-    from sked_ns.config import sked_method
+    from sked_ns.engine.presets import sked_method
 
     config = copy.deepcopy(sked_method.config)
     config.output_dir = tmp_path
@@ -121,8 +122,8 @@ def test_splat_settings_are_typeable_for_any_base_and_reach_the_splat_model():
     splat config built for a splatfacto base must keep what was typed."""
     from nerfstudio.models.splatfacto import SplatfactoModelConfig
 
-    from sked_ns.splat_model import SkedSplatModelConfig
-    from sked_ns.trainer import edit_model_config
+    from sked_ns.models.splat.model import SkedSplatModelConfig
+    from sked_ns.engine.trainer import edit_model_config
 
     typed = SkedNerfactoModelConfig(keep_threshold=0.95, num_seeds=600, seed_opacity=0.02, seed_size=0.8,
                                     splat_learning_rates="splatfacto", splat_supersampling=3)

@@ -15,7 +15,7 @@ import pytest
 import torch
 
 from sked_ns.errors import SkedUserError
-from sked_ns.sketches import load_sketch_set
+from sked_ns.sketches.sketch_set import load_sketch_set
 
 
 def _free_port() -> int:
@@ -30,7 +30,7 @@ def _sked_sketch() -> str:
 
 @pytest.fixture(scope="module")
 def sketch_viewer(scene, tmp_path_factory):
-    from sked_ns.sketch_viewer import start_viewer, stop_viewer
+    from sked_ns.drawing.sketch_viewer import start_viewer, stop_viewer
 
     out = tmp_path_factory.mktemp("drawn") / "sketches"
     viewer, panel = start_viewer(scene["base"], out, port=_free_port())
@@ -47,9 +47,9 @@ def test_panel_without_a_browser_says_so(sketch_viewer):
 
 def test_panel_draws_two_views_and_saves_the_set(scene, sketch_viewer, monkeypatch):
     """Every panel action, with the browser's camera replaced by the hat's sketch cameras."""
-    import sked_ns.sketch_viewer as sketch_viewer_module
-    from sked_ns.demo import scene as demo_scene
-    from sked_ns.sketching import PinholeCamera
+    import sked_ns.drawing.sketch_viewer as sketch_viewer_module
+    from sked_ns.demo.scenes import sphere as demo_scene
+    from sked_ns.sketches.cameras import PinholeCamera
 
     panel = sketch_viewer["panel"]
     transform = panel.session.transform
@@ -111,9 +111,9 @@ def test_sked_sketch_on_a_folder_that_is_not_a_run(tmp_path):
 
 
 def test_steering_controls_change_what_the_viewer_shows(scene, tmp_path):
-    from sked_ns.edit_run import edit_config
-    from sked_ns.render import render_at, render_base_at
-    from sked_ns.trainer import resolve_edit
+    from sked_ns.engine.edit_run import edit_config
+    from sked_ns.evaluation.render import render_at, render_base_at
+    from sked_ns.engine.trainer import resolve_edit
 
     config = edit_config(scene["base"], scene["data"], scene["sketches"], tmp_path, iterations=2)
     resolve_edit(config)
@@ -127,7 +127,7 @@ def test_steering_controls_change_what_the_viewer_shows(scene, tmp_path):
     model.viewer_show_base.value = True
     assert torch.equal(render_at(model, view, 24)["rgb"], base["rgb"])
     model.viewer_show_base.value = False
-    from sked_ns.sketches import sketch_view_at
+    from sked_ns.sketches.sketch_set import sketch_view_at
 
     camera = sketch_view_at(view, 24)[0]
     model.eval()
@@ -152,9 +152,9 @@ def test_steering_controls_change_what_the_viewer_shows(scene, tmp_path):
 
 def test_cpu_preview_is_a_downscaled_render_of_the_same_view(scene):
     """The captured view's backdrop, rendered narrower on a CPU, shows the same picture."""
-    from sked_ns.demo import scene as demo_scene
-    from sked_ns.sketch_viewer import _load, renderer
-    from sked_ns.sketching import PinholeCamera
+    from sked_ns.demo.scenes import sphere as demo_scene
+    from sked_ns.drawing.sketch_viewer import _load, renderer
+    from sked_ns.sketches.cameras import PinholeCamera
 
     _, pipeline, transform = _load(scene["base"], "cpu")
     view = demo_scene.SCENES["hat"].sketch_set(size=64).in_model_frame(transform).views[0]
@@ -177,7 +177,7 @@ def test_capture_pressed_again_while_rendering_is_ignored(sketch_viewer):
 
 
 def test_sked_sketch_refuses_an_existing_set_and_a_bad_port_before_loading_anything(tmp_path):
-    from sked_ns.sketch_viewer import entrypoint
+    from sked_ns.drawing.sketch_viewer import entrypoint
 
     (tmp_path / "done").mkdir()
     (tmp_path / "done" / "sketches.json").write_text("{}")

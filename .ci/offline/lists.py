@@ -23,9 +23,9 @@ ROOT = HERE.parents[1]
 RUNTIME_MODULES = [
     "nerfstudio.scripts.train", "nerfstudio.configs.method_configs", "nerfstudio.viewer.viewer",
     "nerfstudio.scripts.viewer.run_viewer", "nerfstudio.scripts.render", "nerfstudio.utils.writer",
-    "torch.utils.tensorboard", "sked_ns.config", "sked_ns.ngp_model", "sked_ns.guidance.stable_diffusion",
-    "sked_ns.evaluate", "sked_ns.clip_score", "sked_ns.sketch_viewer", "sked_ns.demo.run", "sked_ns.authors_import",
-    "sked_ns.splat_model", "sked_ns.splat_render", "sked_ns.demo.splat_base", "sked_ns.batch.cli", "sked_ns.batch.report",
+    "torch.utils.tensorboard", "sked_ns.engine.presets", "sked_ns.models.nerf.ngp", "sked_ns.guidance.stable_diffusion",
+    "sked_ns.evaluation.evaluate", "sked_ns.evaluation.clip_score", "sked_ns.drawing.sketch_viewer", "sked_ns.demo.run", "sked_ns.drawing.authors_import",
+    "sked_ns.models.splat.model", "sked_ns.models.splat.rasterize", "sked_ns.demo.splat_base", "sked_ns.batch.cli", "sked_ns.batch.report",
     "yaml",
     "diffusers.models.unets.unet_2d_condition", "diffusers.models.autoencoders.autoencoder_kl",
     "diffusers.schedulers.scheduling_ddpm", "transformers.models.clip.modeling_clip",

@@ -10,7 +10,8 @@ from itertools import islice
 from pathlib import Path
 from typing import Dict, Iterator, List, Optional, Sequence
 
-from sked_ns.batch.plan import Job, Jobs, Plan, load_plan, output_problem, size_warning, slurm_problem
+from sked_ns.batch.plan import Job, Jobs, Plan, size_warning
+from sked_ns.batch.plan_file import load_plan, output_problem, slurm_problem
 from sked_ns.batch.state import TO_RUN, JobStatus, plan_status, status_table
 from sked_ns.errors import SkedUserError, show_warnings_as_lines, warn
 

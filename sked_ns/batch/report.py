@@ -74,7 +74,7 @@ def write_report(plan: Plan, statuses: Optional[List[JobStatus]] = None) -> Dict
 
 def _view_heights(result: dict) -> List[int]:
     """The height of each sketch-view row of sked-eval's sheet: each view rendered with its longer side at
-    `resolution` (sked_ns.sketches.sketch_view_at), the rows stacked in the set's order."""
+    `resolution` (sked_ns.sketches.sketch_set.sketch_view_at), the rows stacked in the set's order."""
     resolution = int(result["resolution"])
     views = json.loads((Path(result["sketches"]) / "sketches.json").read_text())["views"]
     return [max(1, round(v["h"] * resolution / max(v["w"], v["h"]))) for v in views]

@@ -22,9 +22,9 @@ from nerfstudio.data.datamanagers.base_datamanager import VanillaDataManagerConf
 from nerfstudio.field_components.field_heads import FieldHeadNames
 from nerfstudio.cameras.rays import Frustums, RaySamples
 
-from sked_ns.demo import scene as demo_scene
-from sked_ns.nerfacto_model import _without_lpips
-from sked_ns.sketches import DataparserTransform
+from sked_ns.demo.scenes import sphere as demo_scene
+from sked_ns.models.nerf.nerfacto import _without_lpips
+from sked_ns.sketches.sketch_set import DataparserTransform
 
 PEAK_DENSITY = 100.0
 """Density inside the object (alpha 0.98 over the 0.07 step used by L_pres)."""

@@ -25,7 +25,7 @@ class ReferenceGuidanceConfig(GuidanceConfig):
     _target: Type = field(default_factory=lambda: ReferenceGuidance)
     target: str = "hat"
     """Which known edit renders the references: the demo sphere's (demo_scene.SCENES: hat, handle,
-    antenna) or a held-out benchmark scene's (benchmark_scenes.SCENES: vase, crate)."""
+    antenna) or a held-out benchmark scene's (objects.SCENES: vase, crate)."""
     weight: float = 30.0
     """Multiplier of the image MSE. At 1 the silhouette loss outweighs it and fills the sketch
     with a grey haze (demo scene, 100 iterations: a grey hat, PSNR outside 30.9 dB); at 30 the
@@ -78,7 +78,7 @@ class ReferenceGuidance(Guidance):
 
 def reference_scene(name: str):
     """The known edit called `name`: a demo-sphere scene or a held-out benchmark scene."""
-    from sked_ns.demo.benchmark_scenes import scene_named
+    from sked_ns.demo.scenes.catalogue import scene_named
 
     try:
         return scene_named(name)

@@ -20,15 +20,15 @@ import cv2
 import numpy as np
 import torch
 
-from sked_ns.demo import scene as demo_scene
+from sked_ns.demo.scenes import sphere as demo_scene
 from sked_ns.demo.base import build_demo_base
-from sked_ns.edit_box import compute_edit_box
-from sked_ns.metrics import intersection_over_sketch, psnr_outside
-from sked_ns.novel_views import eval_split_views, evaluate_novel_views
+from sked_ns.method.edit_box import compute_edit_box
+from sked_ns.evaluation.metrics import intersection_over_sketch, psnr_outside
+from sked_ns.evaluation.novel_views import eval_split_views, evaluate_novel_views
 from sked_ns.errors import ArgumentParser, SkedFileExistsError, SkedUserError, check_writable_folder
-from sked_ns.preservation import SketchDistanceField
+from sked_ns.method.preservation import SketchDistanceField
 from sked_ns.run_lock import hold
-from sked_ns.sketches import DataparserTransform, SketchSet, load_sketch_set, save_sketch_set
+from sked_ns.sketches.sketch_set import DataparserTransform, SketchSet, load_sketch_set, save_sketch_set
 
 MARKER = ".sked-demo"  # marks a folder the demo made, so a rerun may replace it
 
@@ -147,8 +147,8 @@ def check_demo_settings(output: Path, beta: float, size: int, iterations: int, b
 def run(output: Path, beta: float = 0.025, size: int = 128, iterations: int = 100, base_steps: Optional[int] = None,
         prompt: Optional[str] = None, diffusion_model: str = "CompVis/stable-diffusion-v1-4", device: str = "cpu",
         base: str = "nerfacto", splat_fit=None) -> dict:
-    from sked_ns.edit_run import edit_config, run_edit
-    from sked_ns.render import load_pipeline, render_at, render_base_at, resized_mask
+    from sked_ns.engine.edit_run import edit_config, run_edit
+    from sked_ns.evaluation.render import load_pipeline, render_at, render_base_at, resized_mask
 
     check_demo_settings(output, beta, size, iterations, base_steps, prompt, diffusion_model, device, base)
     output = Path(output).resolve()  # absolute paths in config.yml: ns-* commands work from anywhere
@@ -207,7 +207,7 @@ def run(output: Path, beta: float = 0.025, size: int = 128, iterations: int = 10
 
 def entrypoint() -> None:
     from sked_ns.compat import quiet_third_party_warnings
-    from sked_ns.evaluate import novel_summary
+    from sked_ns.evaluation.evaluate import novel_summary
 
     quiet_third_party_warnings()
     parser = ArgumentParser(prog="sked-demo", description=__doc__.split("\n")[0])

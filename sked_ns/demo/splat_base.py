@@ -1,7 +1,7 @@
 """A Gaussian-splat base fitted on the CPU and saved exactly as `ns-train splatfacto` saves a run.
 
 `ns-train splatfacto` needs CUDA (gsplat's rasterizer), so the demo, the tests and the benchmarks fit
-splatfacto's own model here with SKED's torch rasterizer (`sked_ns.splat_render.rasterize`, gsplat's
+splatfacto's own model here with SKED's torch rasterizer (`sked_ns.models.splat.rasterize.rasterize`, gsplat's
 `rasterization` in meaning) and write what nerfstudio's trainer writes: config.yml (splatfacto's
 TrainerConfig with the data and the few settings a user would type), dataparser_transforms.json and
 nerfstudio_models/step-*.ckpt with the pipeline's state dict, the optimizers', the schedulers' and the
@@ -25,7 +25,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from sked_ns.cameras import viewmat
+from sked_ns.sketches.cameras import viewmat
 
 
 @dataclass
@@ -153,7 +153,7 @@ def dataset_point_cloud(data: Path, trace_view: Callable[..., Dict[str, Tensor]]
 
 def fit_demo_splat_base(data: Path, output_dir: Path, fit: SplatFit = SplatFit(), sdf=None, seed: int = 0) -> Path:
     """The demo sphere's splat base (`sdf`: the demo's sphere unless given), seeded from its traced cloud."""
-    from sked_ns.demo import scene as demo_scene
+    from sked_ns.demo.scenes import sphere as demo_scene
 
     sdf = sdf or demo_scene.sphere_sdf
     cloud = dataset_point_cloud(data, lambda pose, focal, width, height: demo_scene.render(sdf, pose, focal, width, height))
@@ -176,11 +176,11 @@ def fit_splat_base(data: Path, output_dir: Path, fit: SplatFit = SplatFit(), see
     20-24 dB held out in 33-51 CPU-s."""
     from nerfstudio.engine.optimizers import Optimizers
 
-    from sked_ns.nerfacto_model import _without_lpips
-    from sked_ns.sketches import DataparserTransform
+    from sked_ns.models.nerf.nerfacto import _without_lpips
+    from sked_ns.sketches.sketch_set import DataparserTransform
 
     if rasterize is None:
-        from sked_ns.splat_render import rasterize
+        from sked_ns.models.splat.rasterize import rasterize
     torch.manual_seed(seed)
     generator = torch.Generator().manual_seed(seed)
     config = splatfacto_config(Path(data), Path(output_dir), fit, experiment)

@@ -20,7 +20,7 @@ from typing_extensions import Annotated
 
 from sked_ns.guidance.base import Guidance, GuidanceConfig, RenderedView
 from sked_ns.guidance.stable_diffusion import StableDiffusionGuidance, StableDiffusionGuidanceConfig
-from sked_ns.validation import refuse, warn
+from sked_ns.errors import refuse, warn_option
 
 ENTRY_POINT_GROUP = "sked_ns.guidance"
 BUILT_IN: Dict[str, Type[GuidanceConfig]] = {"stable-diffusion": StableDiffusionGuidanceConfig}
@@ -70,7 +70,7 @@ def guidance_name(config: GuidanceConfig) -> str:
 def check_guidance(config: GuidanceConfig, prompt: Optional[str]) -> None:
     """The prompt against the guidance, then the guidance's own settings; before any data is read."""
     if prompt is not None and not config.uses_prompt:
-        warn(f"--prompt {prompt!r} is ignored: pipeline.model.guidance:{guidance_name(config)} does not use a prompt.")
+        warn_option(f"--prompt {prompt!r} is ignored: pipeline.model.guidance:{guidance_name(config)} does not use a prompt.")
     elif prompt is not None and not prompt.strip():
         # An unset shell variable must not delete content: carving is asked for by leaving the prompt out.
         refuse([f"--prompt {prompt!r} is empty. To carve the sketched region away, leave out --prompt; otherwise "

@@ -24,8 +24,8 @@ from torch import Tensor
 
 from sked_ns.errors import SkedFileNotFoundError, SkedUserError
 from sked_ns.guidance.base import Guidance, GuidanceConfig, RenderedView
-from sked_ns.random_views import DIRECTIONS
-from sked_ns.validation import is_number, refuse, warn
+from sked_ns.sketches.random_views import DIRECTIONS
+from sked_ns.errors import is_number, refuse, warn_option
 
 
 SdsWeighting = Literal["authors", "dreamfusion"]
@@ -123,10 +123,10 @@ class StableDiffusionGuidanceConfig(GuidanceConfig):
         problems += _model_problems(self.model) + _device_problems(self.device)
         refuse(problems)
         if scale > MAX_GUIDANCE_SCALE:
-            warn(f"{FLAGS}guidance-scale {scale:g}: the SDS gradient grows with the scale (its loss with the square); "
+            warn_option(f"{FLAGS}guidance-scale {scale:g}: the SDS gradient grows with the scale (its loss with the square); "
                  f"above {MAX_GUIDANCE_SCALE:g} it swamps every other loss. DreamFusion and SKED use 100.")
         if self.weight == 0:
-            warn(f"{FLAGS}weight 0: score distillation is off, so nothing but L_sil shapes the sketched region.")
+            warn_option(f"{FLAGS}weight 0: score distillation is off, so nothing but L_sil shapes the sketched region.")
 
     def check_available(self) -> None:
         """The checkpoint's files are here (a local folder, or the hub cache offline), without loading them; a hub
@@ -173,7 +173,7 @@ def view_prompt_tokens(tokenizer, prompt: str, suffixes: Dict[str, str]) -> Dict
     kept = room - max(map(len, endings.values()))
     if len(words) > kept:
         # Cut from the prompt, not the suffix: cut suffixes would make the view prompts identical.
-        warn(f"--prompt is {len(words)} tokens, but the text encoder reads {tokenizer.model_max_length} with its start and "
+        warn_option(f"--prompt is {len(words)} tokens, but the text encoder reads {tokenizer.model_max_length} with its start and "
              f"end tokens and the view suffix (up to {room - kept}): only its first {kept} are used "
              f"(\"{tokenizer.decode(words[:kept])}\"). Shorten it.")
         words = words[:kept]

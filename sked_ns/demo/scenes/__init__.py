@@ -1,0 +1,1 @@
+"""Analytic scenes (signed distance fields) for the demo, tests and benchmarks."""

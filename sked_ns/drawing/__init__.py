@@ -1,0 +1,1 @@
+"""sked-sketch, its viewer panel, the hull check and the authors' importer."""

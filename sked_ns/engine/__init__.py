@@ -1,0 +1,1 @@
+"""nerfstudio glue: presets, trainer, pipeline, datamanager, the base scene, resume."""

@@ -1,0 +1,287 @@
+"""`ns-train sked`: turns `--load-dir` into a base to edit (or an edit to resume).
+
+nerfstudio's `--load-dir` means "resume this run": it restores the optimisers and the step.
+An edit instead starts at step 0 with fresh optimisers from the base's weights, so the base
+is resolved here, before the config is saved: its architecture is copied into the edit's
+model config, its checkpoint recorded, and `load_dir` cleared. Pointing `--load-dir` at an
+earlier SKED run resumes it from its saved config.yml (resume.py); add `--progressive True` to
+edit that result again instead. Checkpoints are written so that a kill cannot leave a broken one.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import copy
+import pickle
+import warnings
+from dataclasses import dataclass, field, fields
+from pathlib import Path
+from typing import Optional, Type
+
+import torch
+import yaml
+from nerfstudio.engine.trainer import Trainer, TrainerConfig
+from nerfstudio.utils.decorators import check_main_thread
+from nerfstudio.utils.rich_utils import CONSOLE
+
+from sked_ns.atomic import publish_atomically, write_text_atomically
+from sked_ns.engine.base_scene import BaseScene, checkpoint_step, dataparser_command, resolve_base
+from sked_ns.errors import SkedFileNotFoundError, SkedUserError, check_writable_folder
+from sked_ns.engine.resume import preset_config, resumed_config, typed_settings
+from sked_ns.run_lock import hold, write_failure
+from sked_ns.engine.safe_step import GuardedGradScaler, GuardedOptimizers, StepGuard
+from sked_ns.method.options import SkedOptions, copy_base_architecture
+from sked_ns.models.registry import representation_of
+from sked_ns.engine.edit_inputs import check_edit_inputs
+from sked_ns.method.validation import check_options
+
+
+@dataclass
+class SkedTrainerConfig(TrainerConfig):
+    _target: Type = field(default_factory=lambda: SkedTrainer)
+    sketches: Optional[Path] = None
+    """Alias for --pipeline.model.sketches: the sketch-set folder."""
+    progressive: bool = False
+    """With --load-dir on an earlier SKED run: edit its result again instead of resuming it."""
+
+    def save_config(self) -> None:
+        resolve_edit(self)  # before saving, so config.yml describes the edit's real model
+        # Before anything is written, not when the first checkpoint is due.
+        check_writable_folder(self.get_base_dir(), "--output-dir", self.output_dir)
+        # The run folder's one writer for the run's life, before config.yml or a checkpoint folder is written.
+        hold(self.get_base_dir(), "Wait for it to end, or give this edit another --timestamp or --output-dir.")
+        check_writable_folder(self.get_checkpoint_dir(), "--output-dir", self.output_dir)
+        save_run_config(self)
+
+
+def save_run_config(config: TrainerConfig) -> None:
+    """config.yml as the run's later readers need it, written whole or not at all (a full disk keeps the old one).
+
+    ns-render, ns-export and ns-viewer (nerfstudio's eval_setup) load `load_step` from the run's own checkpoints,
+    and a resume's load_dir / load_step name the interrupted run's: they describe this start, not the run."""
+    path = config.get_base_dir() / "config.yml"
+    run = copy.copy(config)  # the trainer still resumes from the in-memory config
+    run.load_dir = run.load_step = run.load_checkpoint = None
+    CONSOLE.log(f"Saving config to: {path}")
+    try:
+        write_text_atomically(path, yaml.dump(run))
+    except OSError as error:
+        raise SkedUserError(f"{path}: cannot write the run's config ({error.strerror or error}). Free space there, "
+                            "or pass another --output-dir.") from error
+
+
+def resolve_edit(config: SkedTrainerConfig) -> None:
+    """Fill the model config from --load-dir and the aliases; safe to call twice."""
+    check_options(config.pipeline.model, config.pipeline.datamanager)  # bad values refused before anything is written
+    check_run_settings(config)
+    model = config.pipeline.model
+    if config.sketches is not None:
+        model.sketches = config.sketches
+    if config.prompt is not None:  # nerfstudio passes --prompt on only when it is not empty: "" must not carve
+        model.prompt = config.prompt
+    if config.load_dir is not None and config.load_checkpoint is not None:
+        raise SkedUserError(f"--load-dir {config.load_dir} and --load-checkpoint {config.load_checkpoint}: give one "
+                            "of them (a run folder, or one of its step-*.ckpt files).")
+    # nerfstudio users also name the scene by its checkpoint file: the base, or the edit to resume, from that step.
+    source, flag = (config.load_dir, "--load-dir") if config.load_checkpoint is None else (config.load_checkpoint,
+                                                                                          "--load-checkpoint")
+    if source is None:
+        if model.base_checkpoint is None:
+            raise SkedUserError("ns-train sked needs the scene to edit: --load-dir <base run>/nerfstudio_models.")
+    else:
+        base = resolve_base(source, config.load_step, flag=flag)
+        config.load_checkpoint = None  # resume_edit sets load_dir/load_step to the checkpoint; a new edit loads none
+        if base.family == "sked" and not config.progressive:
+            resume_edit(config, base)
+        else:
+            start_edit(config, base)
+        check_data(config, base)
+    check_edit_inputs(config)  # everything the edit will read, before anything is written
+    # Learning rates decay to 0.1x by the end of this edit (docs/method.md, Optimisation), however long --max-num-iterations makes it.
+    for optimizer in config.optimizers.values():
+        if hasattr(optimizer.get("scheduler"), "max_steps"):
+            optimizer["scheduler"].max_steps = config.max_num_iterations
+
+
+def check_run_settings(config: TrainerConfig) -> None:
+    """The run's length and saving intervals, named by flag (nerfstudio divides by the total, so 0 would crash)."""
+    total = config.max_num_iterations
+    if isinstance(total, bool) or not isinstance(total, int) or total < 1:
+        raise SkedUserError(f"--max-num-iterations {total!r}: an edit needs at least 1 iteration (the paper's is "
+                            "10,000; sked-fast 3,000).")
+    intervals = {"--steps-per-save": config.steps_per_save, "--steps-per-eval-batch": config.steps_per_eval_batch,
+                 "--steps-per-eval-image": config.steps_per_eval_image,
+                 "--steps-per-eval-all-images": config.steps_per_eval_all_images,
+                 "--logging.steps-per-log": config.logging.steps_per_log}
+    bad = [f"{name} {value!r}" for name, value in intervals.items()
+           if isinstance(value, bool) or not isinstance(value, int) or value < 0]
+    if bad:
+        raise SkedUserError(f"{', '.join(bad)}: a number of iterations between two events, a whole number >= 0 "
+                            "(0 turns the event off).")
+    if config.steps_per_save == 0:
+        warnings.warn("--steps-per-save 0: the edit is saved only when it ends, so a crash or kill loses all of it.",
+                      stacklevel=3)
+
+
+def resume_edit(config: SkedTrainerConfig, base: BaseScene) -> None:
+    """Continue the interrupted edit: its saved config, the settable flags typed now, from its latest intact checkpoint."""
+    resumed_config(config, base.config, preset_config(config.method_name), base.run_dir)
+    step = checkpoint_step(base.checkpoint)
+    if config.max_num_iterations <= step + 1:
+        typed = "max_num_iterations" in typed_settings(config, base.config)
+        raise SkedUserError(
+            (f"--max-num-iterations {config.max_num_iterations}: " if typed else f"--load-dir {base.run_dir}: ")
+            + f"the edit was saved after {step + 1} of its {base.config.max_num_iterations} iterations "
+            f"({base.checkpoint.name}), so nothing is left to run. Pass --max-num-iterations above {step + 1} to "
+            "continue it, or --progressive True to edit its result again."
+        )
+    config.load_dir, config.load_step = base.checkpoint.parent, step  # this checkpoint, not a newer broken one
+    CONSOLE.print(f"Resuming the SKED edit {base.run_dir} from {base.checkpoint.name} to "
+                  f"{config.max_num_iterations} iterations")
+
+
+def start_edit(config: SkedTrainerConfig, base: BaseScene) -> None:
+    """A new edit of `base`: the model shaped like it, starting at step 0 from its weights."""
+    model = config.pipeline.model = edit_model_config(config.pipeline.model, base.model_config)
+    model.base_checkpoint = base.checkpoint
+    optimizers = representation_of(base.model_config).edit_optimizers(config.max_num_iterations, model)
+    if optimizers is not None:  # the presets' optimisers are a NeRF's: e.g. Gaussians take the splat edit's groups
+        config.optimizers = optimizers
+    config.load_dir = None  # the base is not a run to resume: fresh optimisers, step 0
+    config.load_step = None
+    CONSOLE.print(f"Editing the {base.method} scene {base.run_dir} ({base.checkpoint.name})")
+
+
+def check_data(config: TrainerConfig, base: BaseScene) -> None:
+    """--data and its dataparser are given and exist (nerfstudio would look for ./transforms.json)."""
+    datamanager = config.pipeline.datamanager
+    data = config.data or datamanager.data or datamanager.dataparser.data
+    if data is None or Path(data) == Path():
+        raise SkedUserError(f"no --data: an edit reads the base's images through the base's dataparser, typed after "
+                            f"every other flag: {dataparser_command(base)} (from {base.run_dir / 'config.yml'}).")
+    if not Path(data).exists():
+        raise SkedFileNotFoundError(f"--data {data}: no such file or folder. The base was trained with "
+                                    f"{dataparser_command(base)}.")
+
+
+def edit_model_config(model, base_model_config):
+    """The SKED model for the base's representation (Gaussians) or sampler (grid or proposals), shaped like the base,
+    keeping SKED's options."""
+    wanted = representation_of(base_model_config).sked_config_class()
+    if not isinstance(model, wanted):
+        options = {option.name: getattr(model, option.name) for option in fields(SkedOptions)}
+        model = wanted(**options, eval_num_rays_per_chunk=model.eval_num_rays_per_chunk)
+    copy_base_architecture(model, base_model_config)
+    return model
+
+
+class SkedTrainer(Trainer):
+    config: SkedTrainerConfig
+
+    def __init__(self, config: SkedTrainerConfig, local_rank: int = 0, world_size: int = 1) -> None:
+        super().__init__(config, local_rank=local_rank, world_size=world_size)
+        self.step_guard = StepGuard(lambda: self.pipeline.model.parameters())
+        # Before setup, so the pipeline gets it too: never backpropagates or applies a non-finite value.
+        self.grad_scaler = GuardedGradScaler(self.step_guard, enabled=self.grad_scaler.is_enabled(),
+                                             device=self.device.split(":")[0])
+
+    def setup(self, test_mode="val") -> None:
+        resolve_edit(self.config)
+        self.skipped_steps = 0
+        # fp16 on CUDA; tests set it on the CPU (where nerfstudio turns mixed precision off) to prove fp16 safety.
+        self.autocast_dtype = torch.float16 if self.device.startswith("cuda") else torch.bfloat16
+        super().setup(test_mode=test_mode)
+        if getattr(self, "viewer_state", None) is not None:
+            self._show_sketches_in_viewer()
+
+    def _show_sketches_in_viewer(self) -> None:
+        """The sketch views (frusta showing their masks) and the edit box, beside the training cameras.
+
+        Through viser directly: nerfstudio's ViewerControl offers no scene objects (the model's controls,
+        beta and the show-base / tint switches, are nerfstudio viewer elements, core.py)."""
+        from sked_ns.engine.viewer import show_sketch_views
+
+        model = self.pipeline.model
+        server = self.viewer_state.viser_server
+        show_sketch_views(server, model.sketch_set.views, model.edit_box)
+        lines = [f"- view {i}: {v.width}x{v.height}, mask {v.mask.mean():.0%} of the image"
+                 for i, v in enumerate(model.sketch_set.views)]
+        with server.gui.add_folder("SKED sketches"):
+            server.gui.add_markdown("\n".join(lines))
+
+    def _load_checkpoint(self) -> None:
+        if self.config.load_dir is None and self.config.load_checkpoint is None:
+            # Not "training from scratch": the model already holds the base's weights.
+            CONSOLE.print(f"Edit starts at step 0 from the base {self.config.pipeline.model.base_checkpoint}")
+            return
+        try:
+            super()._load_checkpoint()
+        except (EOFError, pickle.UnpicklingError, RuntimeError) as error:
+            if isinstance(error, RuntimeError) and "PytorchStreamReader" not in str(error):
+                raise
+            path = self.config.load_checkpoint or Path(self.config.load_dir) / f"step-{self.config.load_step:09d}.ckpt"
+            raise SkedUserError(f"{path}: cannot read this checkpoint ({error}). Resume from an older one with "
+                                "--load-step N.") from error
+
+    def train(self) -> None:
+        # An edit's length is its total: nerfstudio 1.1.5 runs max_num_iterations more steps after a resume.
+        self.config.max_num_iterations = max(self.config.max_num_iterations - self._start_step, 1)
+        super().train()
+
+    def setup_optimizers(self) -> GuardedOptimizers:
+        return GuardedOptimizers(super().setup_optimizers(), self.step_guard)
+
+    def train_iteration(self, step: int):
+        """nerfstudio's iteration under the step guard: a non-finite loss or gradient skips the update."""
+        self.step_guard.start()
+        device_type = "cpu" if self.device.split(":")[0] in ("cpu", "mps") else self.device.split(":")[0]
+        with default_autocast_dtype(device_type, self.autocast_dtype):
+            loss, loss_dict, metrics_dict = super().train_iteration(step)
+        if self.step_guard.reason == "loss":
+            self._skip(step, [name for name, value in loss_dict.items() if not torch.isfinite(value).all()] or ["loss"])
+        elif self.step_guard.skipped:
+            self._skip(step, [self.step_guard.reason])
+        metrics_dict["skipped_steps"] = torch.tensor(float(self.skipped_steps))
+        return loss, loss_dict, metrics_dict
+
+    def _skip(self, step: int, names) -> None:
+        self.skipped_steps += 1
+        CONSOLE.print(f"[yellow]step {step}: non-finite {', '.join(names)}; update skipped[/yellow]")
+
+    @check_main_thread
+    def save_checkpoint(self, step: int) -> None:
+        """Never write a checkpoint holding NaN or inf weights, nor one that a kill could leave half-written:
+        nerfstudio's checkpoint is written in a staging folder beside, synced, then renamed into place."""
+        bad = [name for name, p in self.pipeline.model.named_parameters() if not torch.isfinite(p).all()]
+        if bad:
+            CONSOLE.print(f"[red]step {step}: not saving a checkpoint with non-finite weights ({bad[:3]})[/red]")
+            return
+        checkpoint_dir = self.checkpoint_dir
+        staging = checkpoint_dir.parent / f".{checkpoint_dir.name}.partial"  # same file system: the rename is atomic
+        path = checkpoint_dir / f"step-{step:09d}.ckpt"
+        try:
+            self.checkpoint_dir = staging
+            super().save_checkpoint(step)
+            checkpoint_dir.mkdir(parents=True, exist_ok=True)
+            publish_atomically(staging / path.name, path)
+        except (OSError, RuntimeError) as error:
+            raise write_failure(path, error, "checkpoint") from error
+        finally:
+            self.checkpoint_dir = checkpoint_dir
+        with contextlib.suppress(OSError):
+            staging.rmdir()
+        if self.config.save_only_latest_checkpoint:
+            for older in checkpoint_dir.glob("*.ckpt"):
+                if older != path:
+                    older.unlink()
+
+
+@contextlib.contextmanager
+def default_autocast_dtype(device_type: str, dtype: torch.dtype):
+    """nerfstudio's autocast takes the device's default dtype: make it SKED's for one iteration."""
+    previous = torch.get_autocast_dtype(device_type)
+    torch.set_autocast_dtype(device_type, dtype)
+    try:
+        yield
+    finally:
+        torch.set_autocast_dtype(device_type, previous)

@@ -1,0 +1,1 @@
+"""Rendering saved runs, the paper's metrics, novel views and sked-eval."""

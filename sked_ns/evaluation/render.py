@@ -1,0 +1,101 @@
+"""Render nerfstudio models at sketch-view cameras (evaluation, demo images)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Dict
+
+import torch
+
+from sked_ns.errors import SkedUserError
+from sked_ns.models.registry import is_sked_model, renders_cameras
+from sked_ns.sketches.sketch_set import SketchView, sketch_view_at
+
+
+def render_camera(model, camera, base: bool = False) -> Dict[str, torch.Tensor]:
+    """rgb (h, w, 3) and accumulation (h, w) of one nerfstudio camera; `base`: a SKED model's frozen base."""
+    camera = camera.to(model.device)
+    was_training = model.training
+    model.eval()
+    with torch.no_grad():
+        if not base and renders_cameras(model) and not is_sked_model(model) and model.device.type != "cuda":
+            outputs = render_splatfacto(model, camera)
+        elif not base:
+            outputs = model.get_outputs_for_camera(camera)
+        elif renders_cameras(model):
+            outputs = model.render_base(camera)  # a splat edit rasterizes its frozen base per camera, not per ray
+        else:
+            rays = camera.generate_rays(camera_indices=0, keep_shape=True)
+            shape = rays.shape
+            rays = rays.flatten()
+            chunk = model.config.eval_num_rays_per_chunk
+            parts = [model.render_base(model._collide(rays[i : i + chunk])) for i in range(0, len(rays), chunk)]
+            outputs = {key: torch.cat([part[key] for part in parts]).reshape(*shape, -1) for key in parts[0]
+                       if key in ("rgb", "accumulation", "preservation_weight")}
+    model.train(was_training)
+    result = {"rgb": outputs["rgb"].cpu(), "accumulation": outputs["accumulation"][..., 0].cpu()}
+    if "preservation_weight" in outputs:  # SKED models: 1 where the pixel shows only what must be kept
+        result["preservation_weight"] = outputs["preservation_weight"][..., 0].cpu()
+    return result
+
+
+def render_splatfacto(model, camera) -> Dict[str, torch.Tensor]:
+    """A plain splatfacto model's eval render off CUDA, with SKED's torch rasterizer: nerfstudio 1.1.5's
+    get_outputs moves the intrinsics to CUDA and calls gsplat's CUDA-only kernels. Same Gaussians, SH degree
+    (splatfacto's schedule at the model's step), background and clamping."""
+    from sked_ns.sketches.cameras import viewmat
+    from sked_ns.models.splat.rasterize import rasterize
+
+    camera_to_world = camera.camera_to_worlds.reshape(-1, 3, 4)[:1].to(model.device, torch.float32)
+    intrinsics = camera.get_intrinsics_matrices().reshape(-1, 3, 3)[:1].to(model.device, torch.float32)
+    width, height = int(camera.width.reshape(-1)[0]), int(camera.height.reshape(-1)[0])
+    if model.config.sh_degree > 0:
+        colours = torch.cat((model.features_dc[:, None, :], model.features_rest), dim=1)
+        sh_degree = min(model.step // model.config.sh_degree_interval, model.config.sh_degree)
+    else:
+        colours, sh_degree = torch.sigmoid(model.features_dc), None
+    render, alpha, _ = rasterize(model.means, model.quats, torch.exp(model.scales),
+                                 torch.sigmoid(model.opacities).squeeze(-1), colours, viewmat(camera_to_world),
+                                 intrinsics, width, height, sh_degree=sh_degree,
+                                 rasterize_mode=model.config.rasterize_mode)
+    background = model._get_background_color().to(render)
+    rgb = torch.clamp(render[0, ..., :3] + (1 - alpha[0]) * background, 0.0, 1.0)
+    return {"rgb": rgb, "accumulation": alpha[0]}
+
+
+def render_at(model, view: SketchView, resolution: int) -> Dict[str, torch.Tensor]:
+    """`model` at a sketch view (model frame), longer side `resolution`."""
+    return render_camera(model, sketch_view_at(view, resolution)[0])
+
+
+def render_base_at(model, view: SketchView, resolution: int) -> Dict[str, torch.Tensor]:
+    """Like `render_at`, with a SKED model's frozen copy of its base (exactly the base's weights)."""
+    return render_camera(model, sketch_view_at(view, resolution)[0], base=True)
+
+
+def resized_mask(view: SketchView, resolution: int) -> torch.Tensor:
+    """The mask at the resolution `render_at` renders (the same one L_sil uses)."""
+    return sketch_view_at(view, resolution)[1]
+
+
+def load_pipeline(run_dir: Path, device: str = "cpu"):
+    """A trained run's pipeline (any method, SKED included) with its latest weights, for rendering."""
+    from sked_ns.engine.base_scene import resolve_base
+    from sked_ns.method.options import without_lpips
+
+    run = resolve_base(run_dir)
+    if run.family == "instant-ngp" and not device.startswith("cuda"):
+        raise SkedUserError(
+            f"{run.run_dir / 'config.yml'}: nerfstudio renders instant-ngp runs with nerfacc's CUDA kernels only. "
+            "Use a GPU, or compare with a SKED edit's own frozen copy of its base (sked-eval without --base)."
+        )
+    if run.family == "instant-ngp":
+        from sked_ns.models.nerf.nerfacc_backend import install_lazy_backend
+
+        install_lazy_backend()  # a stock instant-ngp base rendered by a sked-* command gets kernels that build
+    run.config.machine.device_type = device
+    with without_lpips():
+        pipeline = run.config.pipeline.setup(device=device, test_mode="test")
+    state = torch.load(run.checkpoint, map_location="cpu")
+    pipeline.load_pipeline(state["pipeline"], state["step"])
+    return pipeline.eval()

@@ -1,0 +1,199 @@
+"""The 3D edit box: where the sketched region can be, from every view at once.
+
+Each view's mask bounding box (all contours, not only the first as in the authors' code)
+spans a frustum; the edit box is the world axis-aligned box around the intersection of
+all frusta, found exactly with six linear programmes. It seeds the occupancy grid of
+instant-ngp bases and aims the random training cameras.
+"""
+
+from __future__ import annotations
+
+import warnings
+from dataclasses import dataclass
+from itertools import combinations
+from typing import Optional, Sequence
+
+import numpy as np
+import torch
+from scipy.optimize import linprog
+from torch import Tensor
+
+from sked_ns.sketches.cameras import pixel_directions
+from sked_ns.errors import SkedUserError
+from sked_ns.sketches.sketch_set import SketchView
+
+# Frusta start this far in front of each camera (scene units).
+NEAR = 1e-3
+SAME_VIEW_DEG = 1.0
+"""Two views whose rays to their sketches are closer than this are the same view twice."""
+MIN_BASELINE_DEG = 5.0
+"""Views all closer than this cannot bound the sketched region's depth: the box runs out to the scene's bounds."""
+WIDE_BASELINE_DEG = 15.0
+"""Views all closer than this bound the depth loosely (box depth ~ width / tan(angle)): warned."""
+
+
+@dataclass(frozen=True)
+class EditBox:
+    """World-space axis-aligned box."""
+
+    min: np.ndarray
+    max: np.ndarray
+
+    @property
+    def center(self) -> np.ndarray:
+        return (self.min + self.max) / 2
+
+    @property
+    def size(self) -> np.ndarray:
+        return self.max - self.min
+
+    def contains(self, points: Tensor) -> Tensor:
+        low = torch.as_tensor(self.min, dtype=points.dtype, device=points.device)
+        high = torch.as_tensor(self.max, dtype=points.dtype, device=points.device)
+        return ((points >= low) & (points <= high)).all(dim=-1)
+
+
+def frustum_halfspaces(view: SketchView) -> tuple[np.ndarray, np.ndarray]:
+    """Half-spaces A p <= b whose intersection is the frustum of the view's mask bounding box."""
+    u0, v0, u1, v1 = view.bounding_box()
+    pose = torch.as_tensor(view.camera_to_world, dtype=torch.float64)
+    corners = torch.tensor([[u0, v0], [u1, v0], [u1, v1], [u0, v1]], dtype=torch.float64)
+    rays = pixel_directions(corners, pose, torch.as_tensor(view.intrinsics)).numpy()
+    centre_ray = rays.mean(axis=0)
+    origin = view.camera_to_world[:, 3]
+    normals = []
+    for a, b in zip(rays, np.roll(rays, -1, axis=0)):
+        normal = np.cross(a, b)
+        normals.append(normal if normal @ centre_ray < 0 else -normal)  # outward
+    forward = -view.camera_to_world[:, 2]
+    normals.append(-forward)  # in front of the near plane
+    normals = np.stack(normals)
+    offsets = normals @ origin
+    offsets[-1] -= NEAR
+    return normals, offsets
+
+
+def _bounds(halfspaces: Sequence[tuple[np.ndarray, np.ndarray]], scene_box: Optional[np.ndarray]):
+    a_ub = np.concatenate([a for a, _ in halfspaces])
+    b_ub = np.concatenate([b for _, b in halfspaces])
+    bounds = [(None, None)] * 3 if scene_box is None else list(zip(scene_box[0], scene_box[1]))
+    low, high, status = np.zeros(3), np.zeros(3), []
+    for axis in range(3):
+        for sign, out in ((1.0, low), (-1.0, high)):
+            cost = np.zeros(3)
+            cost[axis] = sign
+            result = linprog(cost, A_ub=a_ub, b_ub=b_ub, bounds=bounds, method="highs")
+            status.append(result.status)
+            if result.status == 0:
+                out[axis] = result.x[axis]
+    return low, high, status
+
+
+def _feasible(halfspaces, scene_box) -> bool:
+    a_ub = np.concatenate([a for a, _ in halfspaces])
+    b_ub = np.concatenate([b for _, b in halfspaces])
+    bounds = [(None, None)] * 3 if scene_box is None else list(zip(scene_box[0], scene_box[1]))
+    return linprog(np.zeros(3), A_ub=a_ub, b_ub=b_ub, bounds=bounds, method="highs").status != 2
+
+
+def sketch_direction(view: SketchView) -> np.ndarray:
+    """Unit direction from the camera to the centre of its sketch's bounding box."""
+    u0, v0, u1, v1 = view.bounding_box()
+    centre = torch.tensor([[(u0 + u1) / 2, (v0 + v1) / 2]], dtype=torch.float64)
+    ray = pixel_directions(centre, torch.as_tensor(view.camera_to_world, dtype=torch.float64),
+                           torch.as_tensor(view.intrinsics)).numpy()[0]
+    return ray / np.linalg.norm(ray)
+
+
+def check_view_baselines(views: Sequence[SketchView]) -> float:
+    """The widest angle (degrees) between two views' rays to their sketches: depth comes from it alone.
+
+    The same view twice, or views all within MIN_BASELINE_DEG, are refused (the edit box would run out to the
+    scene's bounds); all within WIDE_BASELINE_DEG is warned."""
+    directions = [sketch_direction(view) for view in views]
+    name = lambda i: views[i].name or f"view {i}"  # noqa: E731
+    angles = {(i, j): float(np.degrees(np.arccos(np.clip(directions[i] @ directions[j], -1.0, 1.0))))
+              for i, j in combinations(range(len(views)), 2)}
+    same = [f"{name(i)} and {name(j)}" for (i, j), angle in angles.items() if angle < SAME_VIEW_DEG]
+    if same:
+        raise SkedUserError(f"The same sketch view twice ({'; '.join(same)}: their rays to the sketch are under "
+                         f"{SAME_VIEW_DEG:g} degree apart), which cannot place the edit in depth. Remove the copy and "
+                         f"sketch the region from a second viewpoint at least {WIDE_BASELINE_DEG:g} degrees away.")
+    widest = max(angles.values())
+    message = (f"The sketch views are at most {widest:.1f} degrees apart ({', '.join(map(name, range(len(views))))}): "
+               "they look along nearly the same line, so the edit's depth is barely bounded and the edit box stretches "
+               f"towards the scene's bounds. Sketch from viewpoints at least {WIDE_BASELINE_DEG:g} degrees apart.")
+    if widest < MIN_BASELINE_DEG:
+        raise SkedUserError(message)
+    if widest < WIDE_BASELINE_DEG:
+        warnings.warn(message, UserWarning, stacklevel=3)
+    return widest
+
+
+def refuse_apart(views: Sequence[SketchView], halfspaces, scene_box: Optional[np.ndarray]) -> None:
+    """The sketches meet nowhere (inside the scene box, if given): say which views do not."""
+    apart = [
+        f"{views[i].name or i} and {views[j].name or j}"
+        for i, j in combinations(range(len(views)), 2)
+        if not _feasible([halfspaces[i], halfspaces[j]], scene_box)
+    ]
+    detail = "; ".join(apart) if apart else "no single region lies inside every view's sketch"
+    raise SkedUserError(
+        f"The sketches do not intersect in 3D ({detail}). Each mask must cover the same region seen "
+        "from its own viewpoint: check the masks and that the poses are in the stated 'frame'."
+    )
+
+
+def check_sketches_meet(views: Sequence[SketchView]) -> None:
+    """What compute_edit_box refuses whatever the scene's bounds: views that cannot place the edit in depth, and
+    sketches that meet nowhere (for a set saved without its scene)."""
+    check_view_baselines(views)
+    halfspaces = [frustum_halfspaces(view) for view in views]
+    if not _feasible(halfspaces, None):
+        refuse_apart(views, halfspaces, None)
+
+
+def compute_edit_box(views: Sequence[SketchView], scene_box: Optional[np.ndarray] = None) -> EditBox:
+    """Axis-aligned box around the intersection of the views' mask-box frusta.
+
+    `scene_box` ([[x0, y0, z0], [x1, y1, z1]]) clips the result. Views that cannot bound the
+    region's depth (the same view twice, near-parallel views) are an error (check_view_baselines).
+    """
+    check_view_baselines(views)
+    halfspaces = [frustum_halfspaces(view) for view in views]
+    scene_box = None if scene_box is None else np.asarray(scene_box, dtype=np.float64)
+    low, high, status = _bounds(halfspaces, scene_box)
+    if 2 in status:
+        refuse_apart(views, halfspaces, scene_box)
+    if any(s != 0 for s in status):
+        raise SkedUserError(
+            "The sketch frusta meet in an unbounded region (the views look along nearly the same line). "
+            "Sketch from viewpoints further apart, or give the scene box to clip to."
+        )
+    return EditBox(min=low, max=high)
+
+
+def occupancy_grid_mask(
+    edit_box: EditBox, roi_aabb: Sequence[float], resolution: int | Sequence[int] = 128, levels: int = 1
+) -> Tensor:
+    """Cells of a nerfacc `OccGridEstimator` that overlap the edit box, shaped like its `binaries`.
+
+    Same layout as nerfacc 0.5: level l covers the roi box enlarged 2^l times about its
+    centre; cell (i, j, k) spans [i, i+1)/res of that box along x (likewise y, z).
+    """
+    res = torch.tensor([resolution] * 3 if isinstance(resolution, int) else list(resolution), dtype=torch.float64)
+    roi = torch.as_tensor(roi_aabb, dtype=torch.float64)
+    centre, half = (roi[:3] + roi[3:]) / 2, (roi[3:] - roi[:3]) / 2
+    low_box = torch.as_tensor(edit_box.min, dtype=torch.float64)
+    high_box = torch.as_tensor(edit_box.max, dtype=torch.float64)
+    masks = []
+    for level in range(levels):
+        low, high = centre - half * 2**level, centre + half * 2**level
+        cell = (high - low) / res
+        # Per axis: cells whose [start, end) interval overlaps [box min, box max].
+        hits = []
+        for axis in range(3):
+            starts = low[axis] + cell[axis] * torch.arange(int(res[axis]), dtype=torch.float64)
+            hits.append((starts <= high_box[axis]) & (starts + cell[axis] > low_box[axis]))
+        masks.append(hits[0][:, None, None] & hits[1][None, :, None] & hits[2][None, None, :])
+    return torch.stack(masks)

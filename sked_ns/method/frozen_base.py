@@ -1,0 +1,65 @@
+"""The frozen base: the scene as trained, which L_pres and the base renders compare against.
+
+A plain dataclass, not a module: held by the edit model as an ordinary attribute, it stays out
+of the module tree, so it is never optimised and never saved; the model's `_apply` moves it.
+"""
+
+from __future__ import annotations
+
+import copy
+from dataclasses import dataclass, fields, replace
+from pathlib import Path
+from typing import Dict, List, Optional
+
+import torch
+from torch import Tensor
+
+from sked_ns.errors import SkedUserError
+
+
+@dataclass
+class FrozenBase:
+    """Copies of the base's modules, in eval mode with gradients off."""
+
+    field: torch.nn.Module
+    """The base's radiance field."""
+    proposal_networks: Optional[torch.nn.ModuleList] = None
+    """nerfacto: the base's proposal density networks."""
+    occupancy_grid: Optional[torch.nn.Module] = None
+    """instant-ngp: the base's occupancy grid."""
+    sampler: Optional[torch.nn.Module] = None
+    """instant-ngp: the base's grid marched with the base's density."""
+
+    @classmethod
+    def copy_of(cls, **modules: torch.nn.Module) -> "FrozenBase":
+        """Frozen deep copies of the edit model's modules (taken right after the base's weights are loaded)."""
+        return cls(**{name: copy.deepcopy(module).eval().requires_grad_(False) for name, module in modules.items()})
+
+    def with_sampler(self, sampler: torch.nn.Module) -> "FrozenBase":
+        return replace(self, sampler=sampler)
+
+    def modules(self) -> List[torch.nn.Module]:
+        return [getattr(self, f.name) for f in fields(self) if getattr(self, f.name) is not None]
+
+
+def read_model_state(checkpoint: Path) -> Dict[str, Tensor]:
+    """The model's weights from a nerfstudio checkpoint, keys without the `_model.` prefix."""
+    try:
+        state = torch.load(checkpoint, map_location="cpu")
+        pipeline = state["pipeline"]
+    except Exception as error:
+        raise SkedUserError(f"{checkpoint}: not a readable nerfstudio checkpoint ({error}).") from error
+    prefix = "_model."
+    model_state = {}
+    for key, value in pipeline.items():
+        key = key[len("module.") :] if key.startswith("module.") else key
+        if key.startswith(prefix):
+            model_state[key[len(prefix) :]] = value
+    if not model_state:
+        raise SkedUserError(f"{checkpoint}: holds no model weights (no '_model.' keys).")
+    return model_state
+
+
+def uses_tcnn(state: Dict[str, Tensor], prefix: str = "field.") -> bool:
+    """tiny-cuda-nn modules store one flat `params` tensor; the torch ones named layers."""
+    return any(key.startswith(prefix) and key.endswith(".params") for key in state)

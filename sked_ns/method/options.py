@@ -1,0 +1,194 @@
+"""SKED's settings, shared by every edit model (nerfacto, instant-ngp, splats), and their checks.
+
+Imports no model code: the base-scene reader and the trainer need these settings before any
+model is built.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import copy
+import warnings
+from dataclasses import dataclass, field, fields
+from pathlib import Path
+from typing import TYPE_CHECKING, ClassVar, FrozenSet, List, Literal, Optional
+
+import torchmetrics.image.lpip as lpip_module
+
+from sked_ns.guidance import GuidanceChoice, StableDiffusionGuidanceConfig
+
+if TYPE_CHECKING:
+    from sked_ns.sketches.sketch_set import SketchSet
+
+
+@dataclass
+class SkedOptions:
+    """SKED's settings, shared by every edit model."""
+
+    EDIT_OWNED: ClassVar[FrozenSet[str]] = frozenset({
+        "_target",  # the SKED model class
+        "prompt",  # nerfstudio's ModelConfig has one too: the edit's prompt is SKED's
+        "eval_num_rays_per_chunk",  # a rendering setting of this run
+        "camera_optimizer",  # the edit keeps the base's cameras; the base's mode goes to base_camera_optimizer
+    })
+    """Fields of the model config the edit decides, not the base (each representation adds its own); every other
+    field of the base's model config is its architecture, copied by `copy_base_architecture`."""
+
+    sketches: Optional[Path] = None
+    """Sketch-set folder (sketches.json + PNG masks); `ns-train sked --sketches` sets it."""
+    prompt: Optional[str] = None
+    """What should be in the sketched region; none with Stable Diffusion guidance = carve it away."""
+    base_checkpoint: Optional[Path] = None
+    """The base's step-*.ckpt; filled in from --load-dir."""
+    guidance: GuidanceChoice = field(default_factory=StableDiffusionGuidanceConfig)
+    """What pulls the sketched region: a subcommand, `pipeline.model.guidance:stable-diffusion` (default) or
+    another installed guidance (`pipeline.model.guidance:reference`: renders of a known target scene)."""
+    beta: float = 0.025
+    """Falloff of the preservation weight, in image widths (paper Eq. 4)."""
+    lambda_pres: float = 5.0
+    """Weight of L_pres (a mean over samples; the authors' 5e-6 multiplied a sum)."""
+    lambda_colour: float = 5.0
+    """Weight of the colour term inside L_pres."""
+    preservation_target: Literal["occupancy", "density"] = "density"
+    """What L_pres holds the edit to: the base's own density (a soft base stays soft) or, as the paper, its occupancy
+    thresholded at occupancy_threshold (sharpens a soft base: -1.2 vs -0.2 dB kept; docs/method.md, L_pres)."""
+    lambda_sil: float = 1.0
+    """Weight of L_sil."""
+    silhouette_normalisation: Literal["image", "sketch"] = "image"
+    """L_sil per image pixel (paper) or per sketch pixel ("sketch": scaled so a sketch covering 5% of its frame
+    weighs the same; a sketch covering less pulls harder than under the paper's)."""
+    colour_residual: bool = True
+    """Give new content its own colour capacity near the sketches (colour_residual.py): a colour the base never shows
+    is reached without moving the colour MLP everything kept shares. False: the paper's model."""
+    silhouette_opacity: Literal["editable", "any"] = "editable"
+    """What L_sil asks to be opaque along a sketch ray: content near the sketches (opacity weighted by 1 - w), so a
+    wall or table behind the sketch does not fill it before anything is made; "any" is the paper's (all opacity,
+    right for a base with an empty background)."""
+    lambda_sp: float = 5e-4
+    """Weight of the sparsity (accumulation entropy) loss."""
+    lambda_new_mass: float = 0.0
+    """Weight of L_new (losses.new_mass_loss; NeRF bases): the opacity the edit adds over the base near the sketches,
+    counted only where every sketch ray through a point already holds more than 0.9 of new opacity (or off the
+    sketches: hull_carving.SketchRayOpacity), so a two-view visual hull is carved once filled, not before the part
+    forms. 0 (default): the paper's losses; measured only on `marker` so far (README, Edit quality)."""
+    lambda_carve: float = 5.0
+    """Weight of the carving loss (empty the sketched region) when there is no prompt."""
+    occupancy_threshold: float = 5.0
+    """Base density above which a sample counts as occupied."""
+    preservation_delta: float = 0.07
+    """Fixed step length turning density into occupancy in L_pres."""
+    guidance_resolution: int = 128
+    """Side of the random view rendered for guidance (authors: 128, upsampled for SD)."""
+    silhouette_resolution: int = 128
+    """Longer side of the sketch views rendered for L_sil (authors: 128)."""
+    edit_box_warmup: int = 1000
+    """Iterations during which the empty edit box is kept sampled."""
+    compile_lookup: bool = True
+    """torch.compile the sketch-distance lookup on CUDA."""
+    samples_per_ray_scale: float = 1.0
+    """Samples per ray relative to the base's (nerfacto: sample counts; instant-ngp: 1 / step size)."""
+    lambda_photo: float = 1.0
+    """Weight of the base-photo anchor (photo_anchor.py): the base's training photos, at rays that never come
+    near the editable region, keep the edit as the base was trained. 0: the paper's losses only. NeRF bases hold
+    such rays exactly already (keep_threshold), so there it acts only if keep_threshold is above photo_threshold."""
+    photo_threshold: float = 0.99
+    """A photo ray anchors the edit only if every point on it has a preservation weight above this."""
+    base_camera_optimizer: Literal["off", "SO3xR3", "SE3"] = "off"
+    """The base's camera optimisation (copied from it): its learnt pose corrections are applied to photo rays."""
+    ablation: Literal["none", "no-preserve", "no-silhouette", "text-only"] = "none"
+    """The paper's ablations: drop L_pres, drop L_sil, or both (text only: the sketches only aim the views)."""
+    keep_threshold: float = 0.99
+    """What is far from the sketches is kept exactly: NeRF samples with a preservation weight above this take the frozen
+    base's density and colour (held_field.py; the editable field is trained only at the others), and splat bases'
+    Gaussians whose centre's weight is above it are never optimised, densified, pruned or reset. The rest is held to
+    the base by L_pres. 1 holds nothing exactly: the paper's soft L_pres alone."""
+    # Gaussian-splat bases only (splat_model.py); here so `ns-train sked` can parse them for any base.
+    num_seeds: int = 3000
+    """Splats: new Gaussians seeded inside the sketches' visual hull for new content (none when carving), each as wide
+    as their spacing (seed_size). With supersampled training renders more seeds give a sharper part (hat / vase /
+    crate, 100 CPU iterations, changed region vs target: 250 seeds 17.8 / 16.8 / 21.7 dB, 1,000 19.1 / 17.2 / 21.9,
+    3,000 19.9 / 17.3 / 22.8, 10,000 20.3 / 17.8 / 21.6); densification adds more where the edit runs long enough."""
+    seed_opacity: float = 0.005
+    """Splats: opacity of the seeds at the start: nearly transparent, but above the rasterizer's 1/255 cut-off, under
+    which a Gaussian is skipped and gets no gradient."""
+    seed_size: float = 1.0
+    """Splats: seed scale (standard deviation) relative to their mean spacing: at 1 neighbouring seeds overlap, so
+    the hull starts as one continuous (transparent) medium."""
+    splat_learning_rates: Literal["edit", "splatfacto"] = "edit"
+    """Splats: the Gaussians' Adam rates. "edit": sized to the edit's length, so that a seed can turn opaque, take any
+    colour and change its size 4x within a third of the iterations (models/splat/rates.py); "splatfacto":
+    splatfacto's own, sized for 30,000-step runs (a 500-step edit's seeds stay a faint grey haze)."""
+    splat_supersampling: int = 4
+    """Splats: the random view (and the base render the guidance compares it with) is rendered at this many times its
+    resolution and averaged down to it, so that a Gaussian's footprint between two pixel centres is fitted too (1: one
+    sample a pixel, under which a seed fitted at a CPU edit's 24 px shows as a soft blob from other views; hat / vase /
+    crate at 100 iterations, changed region vs target 12.2 / 9.7 / 16.9 dB at 1, 16.2 / 12.8 / 19.9 at 2, 17.8 /
+    16.8 / 21.7 at 4). The sketch views keep one: L_sil averaged over a pixel would fill the sketch's edge pixels."""
+
+    @property
+    def effective_lambda_pres(self) -> float:
+        return 0.0 if self.ablation in ("no-preserve", "text-only") else self.lambda_pres
+
+    @property
+    def effective_lambda_photo(self) -> float:
+        # The photo anchor preserves too: the no-preserve ablations drop it with L_pres.
+        return 0.0 if self.ablation in ("no-preserve", "text-only") else self.lambda_photo
+
+    @property
+    def effective_lambda_sil(self) -> float:
+        return 0.0 if self.ablation in ("no-silhouette", "text-only") else self.lambda_sil
+
+
+
+@contextlib.contextmanager
+def without_lpips():
+    """nerfstudio models build LPIPS (an AlexNet download) in populate_modules; SKED needs none."""
+    original = lpip_module.LearnedPerceptualImagePatchSimilarity
+    lpip_module.LearnedPerceptualImagePatchSimilarity = lambda *args, **kwargs: None
+    try:
+        yield
+    finally:
+        lpip_module.LearnedPerceptualImagePatchSimilarity = original
+
+
+def is_carving(config: SkedOptions) -> bool:
+    """A prompt-driven guidance (Stable Diffusion) without a prompt removes what is in the sketches."""
+    return config.guidance.uses_prompt and not (config.prompt and config.prompt.strip())
+
+
+def warn_degenerate_settings(config: SkedOptions, sketch_set: SketchSet) -> List[str]:
+    """Settings that run without error but cannot give a sensible edit get a clear warning."""
+    messages = []
+    if config.beta < 1e-3:
+        messages.append(f"beta = {config.beta:g} image widths is under a pixel at usual sizes: only the exact "
+                        "sketch rays may change and the edit cannot blend in (paper range 0.005-1).")
+    if config.beta > 1.0:
+        messages.append(f"beta = {config.beta:g} image widths: preservation weights are near 0 around the whole "
+                        "object, so the edit may change everything (paper range 0.005-1).")
+    if config.lambda_pres == 0:
+        messages.append("lambda_pres = 0: nothing preserves the base (the paper's no-preserve ablation).")
+    if config.lambda_sil == 0 and config.prompt:
+        messages.append("lambda_sil = 0: nothing makes the edit fill the sketches (the paper's no-silhouette ablation).")
+    for view in sketch_set.views:
+        covered = float(view.mask.mean())
+        if covered > 0.9:
+            messages.append(f"{view.name or 'a sketch view'}: the mask covers {covered:.0%} of the image, so almost "
+                            "nothing in that view is preserved.")
+    for message in messages:
+        warnings.warn(message, SkedSettingsWarning, stacklevel=2)
+    return messages
+
+
+class SkedSettingsWarning(UserWarning):
+    """A setting that runs but defeats the method."""
+
+
+def copy_base_architecture(target: SkedOptions, base_model_config) -> None:
+    """Make the edit's model the base's shape: every field of the base's model config but the edit's own."""
+    owned = type(target).EDIT_OWNED | {option.name for option in fields(SkedOptions)}
+    ours = {f.name for f in fields(target)}
+    for name in (f.name for f in fields(base_model_config)):
+        if name in ours and name not in owned:
+            setattr(target, name, copy.deepcopy(getattr(base_model_config, name)))
+    cameras = getattr(base_model_config, "camera_optimizer", None)
+    target.base_camera_optimizer = getattr(cameras, "mode", "off") if cameras is not None else "off"

@@ -1,0 +1,1 @@
+"""The representations SKED edits, and the registry that names them."""

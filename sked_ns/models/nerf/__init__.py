@@ -1,0 +1,1 @@
+"""NeRF representations: nerfacto and instant-ngp edits."""

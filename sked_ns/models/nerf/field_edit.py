@@ -1,0 +1,320 @@
+"""SKED on a NeRF field, whatever its sampler (nerfacto's proposals, NGP's grid).
+
+`SkedEdit` (edit.py) holds what SKED adds to any representation; this mixin adds what rays
+through a field need: rendering along ray samples, L_pres on the random view's samples
+against the frozen base's field, the editable opacity along a sketch ray, the photo anchor on
+rays, and loading a base field's weights.
+
+A model using `SkedMixin` supplies four things: `_render(ray_bundle)` (outputs plus the
+samples and field outputs behind them), `render_base`, `_sampling_losses` and the list of
+weight prefixes its base checkpoint must provide.
+"""
+
+from __future__ import annotations
+
+import contextlib
+from pathlib import Path
+from typing import Dict, List, Optional, Sequence, Tuple
+
+import torch
+from nerfstudio.cameras.rays import RayBundle, RaySamples
+from nerfstudio.field_components.encodings import HashEncoding
+from nerfstudio.field_components.field_heads import FieldHeadNames
+from torch import Tensor
+
+from sked_ns.method.frozen_base import read_model_state, uses_tcnn
+from sked_ns.models.nerf.colour_residual import ColourResidual
+from sked_ns.method.edit import SkedEdit, StepTerms
+from sked_ns.errors import SkedUserError
+from sked_ns.models.nerf.held_field import held_field_outputs
+from sked_ns.method.hull_carving import SketchRayOpacity
+from sked_ns.method.losses import new_mass_loss, occupancy_log_probabilities, preservation_loss
+from sked_ns.method.options import (  # noqa: F401  (re-exported: their home was this module)
+    SkedOptions,
+    SkedSettingsWarning,
+    is_carving,
+    warn_degenerate_settings,
+    without_lpips,
+)
+from sked_ns.method.photo_anchor import anchor_rays, correct_poses, rays_away_from_edit
+
+
+def per_ray_sum(values: Tensor, accumulation: Tensor, ray_indices: Optional[Tensor] = None) -> Tensor:
+    """Sum per-sample values (..., samples, 1) over each ray, shaped as `accumulation`; `ray_indices` for packed
+    samples (occupancy grids)."""
+    if ray_indices is None:
+        return values.sum(dim=-2)
+    return torch.zeros_like(accumulation).index_add(0, ray_indices, values)
+
+
+
+class SkedMixin(SkedEdit):
+    """SKED on a radiance field rendered along rays: L_pres on field samples, the base's field, photo rays."""
+
+    BASE_PREFIXES: Tuple[str, ...] = ("field.",)
+    """Checkpoint keys the base must provide and the edit starts from."""
+
+    # ---- set-up ---------------------------------------------------------------------------
+    def _setup_sked(self) -> None:
+        """Call after the parent's populate_modules."""
+        super()._setup_sked()
+        # The appearance of random views is the average embedding: keep it as trained.
+        if getattr(self.field, "embedding_appearance", None) is not None:
+            self.field.embedding_appearance.requires_grad_(False)
+        self.colour_residual = (ColourResidual(self.edit_box.min, self.edit_box.max)
+                                if self.config.colour_residual else None)
+        self.sketch_ray_opacity = SketchRayOpacity(self.sketch_set.views, self.config.silhouette_resolution)
+
+    def _steer(self, ray_bundle: RayBundle, outputs: Dict[str, Tensor]) -> Dict[str, Tensor]:
+        """Evaluation outputs as the viewer controls ask (steer_outputs), the base rendered along the same rays."""
+        return self.steer_outputs(outputs, lambda: self.render_base(ray_bundle))
+
+    def _load_base_weights(self) -> None:
+        """The editable modules <- the base's weights, after checking they fit."""
+        checkpoint = self.config.base_checkpoint
+        if checkpoint is None:
+            raise ValueError("No base checkpoint: run `ns-train sked --load-dir <base run or its nerfstudio_models>`.")
+        state = read_model_state(Path(checkpoint))
+        ours = self.state_dict()
+        if uses_tcnn(state) != uses_tcnn(ours):
+            trained, here = ("tiny-cuda-nn", "torch") if uses_tcnn(state) else ("torch", "tiny-cuda-nn")
+            raise SkedUserError(
+                f"{checkpoint}: the base was trained with the {trained} implementation, but this edit builds "
+                f"{here} modules, whose weights are laid out differently. "
+                + ("Install tinycudann here, or edit on the machine that trained the base."
+                   if uses_tcnn(state) else "Pass --pipeline.model.implementation torch.")
+            )
+        embedding = state.get("field.embedding_appearance.embedding.weight")
+        if embedding is not None and embedding.shape[0] != self.num_train_data:
+            raise SkedUserError(
+                f"{checkpoint}: the base was trained on {embedding.shape[0]} images but --data has "
+                f"{self.num_train_data}. Pass the base's own data and dataparser settings."
+            )
+        wanted = [key for key in ours if key.startswith(self.BASE_PREFIXES)]
+        missing = [key for key in wanted if key not in state]
+        mismatched = [key for key in wanted if key in state and state[key].shape != ours[key].shape]
+        if missing or mismatched:
+            raise SkedUserError(
+                f"{checkpoint}: the base's weights do not fit this model (missing {missing[:3]}, "
+                f"shape mismatch {mismatched[:3]}). Is --data the base's data, and the base a supported method?"
+            )
+        self.load_state_dict({key: state[key] for key in wanted}, strict=False)
+        self._base_cameras = self._frozen_base_cameras(state)
+
+    def _frozen_base_cameras(self, state: Dict[str, Tensor]) -> list:
+        """The base's learnt pose corrections (nerfacto optimises its cameras): photo rays need them."""
+        if self.config.base_camera_optimizer == "off" or "camera_optimizer.pose_adjustment" not in state:
+            return []
+        from nerfstudio.cameras.camera_optimizers import CameraOptimizerConfig
+
+        adjustment = state["camera_optimizer.pose_adjustment"]
+        optimizer = CameraOptimizerConfig(mode=self.config.base_camera_optimizer).setup(
+            num_cameras=adjustment.shape[0], device="cpu")
+        optimizer.load_state_dict({"pose_adjustment": adjustment})
+        return [optimizer.eval().requires_grad_(False)]
+
+    @property
+    def base_field(self):
+        return self.frozen_base.field
+
+    def _hash_grid_groups(self, **non_grid: torch.nn.Module) -> Dict[str, List[torch.nn.Parameter]]:
+        """Hash grids get their own group: docs/method.md (Optimisation) trains them at 10x the MLPs' rate."""
+        grids = {id(p) for module in self.modules() if isinstance(module, HashEncoding) for p in module.parameters()}
+        trainable = lambda module: [p for p in module.parameters() if p.requires_grad]  # noqa: E731
+        groups = {name: [p for p in trainable(module) if id(p) not in grids] for name, module in non_grid.items()}
+        groups["hash_grids"] = [p for p in trainable(self) if id(p) in grids]
+        if getattr(self, "colour_residual", None) is not None:
+            # Its linear layer starts at zero, so the grid gets no gradient until it moves: train it at the grids' rate.
+            groups["hash_grids"] += list(self.colour_residual.linear.parameters())
+        return groups
+
+    # ---- model-specific hooks ------------------------------------------------------------
+    def _render(self, ray_bundle: RayBundle) -> Tuple[Dict[str, Tensor], RaySamples, Dict]:
+        """Render with the editable field: (outputs, samples, field outputs at the samples). The outputs hold the
+        samples' weights as "_weights" (and "_ray_indices" for packed samples) for L_sil's editable opacity."""
+        raise NotImplementedError
+
+    def render_base(self, ray_bundle: RayBundle) -> Dict[str, Tensor]:
+        """The frozen base seen along `ray_bundle`."""
+        raise NotImplementedError
+
+    def _sampling_losses(self, rendered: Sequence[Dict[str, Tensor]]) -> Dict[str, Tensor]:
+        """Losses of the sampler itself (nerfacto's interlevel loss), over all renders of a step."""
+        return {}
+
+    # ---- shared --------------------------------------------------------------------------
+    def _collide(self, ray_bundle: RayBundle) -> RayBundle:
+        # Model.forward applies the collider; SKED's own renders bypass forward.
+        return self.collider(ray_bundle) if self.collider is not None else ray_bundle
+
+    def _edit_colour(self, field_outputs: Dict, ray_samples: RaySamples) -> Dict:
+        """The editable field's colours with the colour residual (colour_residual.py); the base's are never moved."""
+        if self.colour_residual is None:
+            return field_outputs
+        positions = ray_samples.frustums.get_positions()
+        rgb = field_outputs[FieldHeadNames.RGB]
+        return {**field_outputs, FieldHeadNames.RGB: self.colour_residual.apply(rgb, positions,
+                                                                             self.preservation_weight(positions))}
+
+    def editable_accumulation(self, positions: Tensor, weights: Tensor, accumulation: Tensor,
+                              ray_indices: Optional[Tensor] = None) -> Tensor:
+        """Per ray: sum_i weight_i (1 - w(p_i)), the opacity of content the edit may change (differentiable in the
+        weights; w is fixed). 1 - expected_preservation without the background term; shaped as `accumulation`."""
+        return per_ray_sum(weights * (1.0 - self.preservation_weight(positions)), accumulation, ray_indices)
+
+    def expected_preservation(self, positions: Tensor, weights: Tensor, accumulation: Tensor,
+                              ray_indices: Optional[Tensor] = None) -> Tensor:
+        """Per ray: sum_i weight_i w(p_i), plus the background (1 - accumulation), which is preserved.
+
+        0 where a pixel shows content the edit may change, 1 where it shows only what must be kept.
+        `ray_indices` for packed samples (occupancy grids), else samples are (rays, samples, 3).
+        """
+        preserved = per_ray_sum((weights * self.preservation_weight(positions)).detach(), accumulation, ray_indices)
+        return (preserved + (1 - accumulation.detach()).clamp(0, 1)).clamp(0, 1)
+
+    # ---- kept content held exactly (held_field.py) --------------------------------------------
+    def _kept(self, positions: Tensor) -> Optional[Tensor]:
+        """Which points are kept exactly as the base (w above keep_threshold); None when nothing is held."""
+        if self.config.keep_threshold >= 1:
+            return None
+        return self.preservation_weight(positions)[..., 0] > self.config.keep_threshold
+
+    def _held_outputs(self, ray_samples: RaySamples, evaluate) -> Tuple[Dict, Dict]:
+        """(edit's field outputs with kept samples the base's, base's field outputs); `evaluate(field, samples)`."""
+        base_field, mode = self.base_field, self.base_field.training
+        base_field.train(self.field.training)  # the same appearance (a photo's while anchoring) on both sides
+        try:
+            return held_field_outputs(lambda s: self._edit_colour(evaluate(self.field, s), s),
+                                      lambda s: evaluate(base_field, s), ray_samples,
+                                      self._kept(ray_samples.frustums.get_positions()))
+        finally:
+            base_field.train(mode)
+
+    def held_density_fn(self, edit_fn, base_fn):
+        """A density function that is the base's at kept points (samplers and occupancy grids follow what renders)."""
+        def density(positions: Tensor, times: Optional[Tensor] = None) -> Tensor:
+            value = edit_fn(positions, times)
+            kept = self._kept(positions)
+            if kept is None or not bool(kept.any()):
+                return value
+            with torch.no_grad():
+                base = base_fn(positions, times)
+            return torch.where(kept[..., None], base.to(value.dtype), value)
+
+        return density
+
+    @contextlib.contextmanager
+    def _average_appearance(self):
+        """Random and sketch views have no training image: use the evaluation appearance."""
+        was_training = self.field.training
+        self.field.train(False)
+        try:
+            yield
+        finally:
+            self.field.train(was_training)
+
+    # ---- the base-photo anchor on rays ------------------------------------------------------
+    def photo_anchor_acts(self) -> bool:
+        # Its rays have w above photo_threshold everywhere: held exactly (and so without a gradient) unless
+        # keep_threshold is higher.
+        return super().photo_anchor_acts() and self.config.keep_threshold > self.config.photo_threshold
+
+    def photo_rays_kept(self, rays: RayBundle) -> Tensor:
+        """Which (collided) photo rays never come near the editable region."""
+        count = len(rays)
+        nears = rays.nears if rays.nears is not None else torch.zeros(count, 1, device=rays.origins.device)
+        fars = rays.fars if rays.fars is not None else torch.full((count, 1), 1e10, device=rays.origins.device)
+        return rays_away_from_edit(rays.origins, rays.directions, nears, fars, self.editable_box(),
+                                   lambda p: self.preservation_weight(p)[..., 0], self.config.photo_threshold)
+
+    def photo_anchor(self, rays: RayBundle, rgb: Tensor) -> Optional[Tuple[Tensor, Dict[str, Tensor], Tensor]]:
+        """MSE to the base's photos at its safe rays, rendered as the base was trained (its image's appearance,
+        its corrected pose). Returns (loss, outputs, fraction of rays kept), or None if no ray is safe."""
+        rays = self._collide(rays)
+        safe = self.photo_rays_kept(rays)
+        if not safe.any():
+            return None
+        rays, rgb = anchor_rays(rays, rgb, safe)
+        correct_poses(rays, self._base_cameras)
+        outputs = self._render(rays)[0]
+        predicted, truth = self.renderer_rgb.blend_background_for_loss_computation(
+            pred_image=outputs["rgb"], pred_accumulation=outputs["accumulation"], gt_image=rgb.to(outputs["rgb"]))
+        if not self.check_photos_once(predicted, truth):
+            return None
+        return torch.nn.functional.mse_loss(predicted.float(), truth.float()), outputs, safe.float().mean()
+
+    @torch.no_grad()
+    def _base_sketch_opacity(self, sketch_rays: RayBundle) -> Tensor:
+        """The frozen base's L_sil opacity at the sketch rays: rendered once per beta (the base never changes; its
+        editable opacity follows w, which the viewer's beta moves)."""
+        key = (len(sketch_rays), self.config.beta)
+        cached = getattr(self, "_base_sketch_opacity_cache", None)
+        if cached is None or cached[0] != key:
+            with self._average_appearance():
+                base = self.render_base(self._collide(sketch_rays))
+            opacity = (base["accumulation"] if self.config.silhouette_opacity == "any"
+                       else 1.0 - base["preservation_weight"]).detach()
+            cached = self._base_sketch_opacity_cache = (key, opacity)
+        return cached[1]
+
+    # ---- one iteration -----------------------------------------------------------------------
+    def get_sked_loss_dict(self, data: Dict, step: int) -> tuple[Dict[str, Tensor], Dict[str, Tensor], Dict[str, Tensor]]:
+        """All losses of one iteration from the datamanager's `next_sked` dict; returns (outputs, losses, metrics)."""
+        config = self.config
+        random_view, sketch_rays, sketch_masks = data["random_view"], data["sketch_rays"], data["sketch_masks"]
+        height, width = random_view.shape[:2]
+        with self._average_appearance():
+            view, samples, field_outputs = self._render(self._collide(random_view.flatten()))
+            sketch, sketch_samples, _ = self._render(self._collide(sketch_rays)) if sketch_rays is not None else (None,) * 3
+
+        # L_pres on the random view's samples.
+        weight = self.preservation_weight(samples.frustums.get_positions())
+        base_outputs = view.pop("_base_field_outputs")
+        density_edit = field_outputs[FieldHeadNames.DENSITY]
+        terms = StepTerms(preservation=preservation_loss(
+            density_edit, field_outputs[FieldHeadNames.RGB], base_outputs[FieldHeadNames.DENSITY],
+            base_outputs[FieldHeadNames.RGB], weight, config.occupancy_threshold, config.preservation_delta,
+            config.lambda_colour, config.preservation_target,
+        ), accumulation=view["accumulation"])
+        carving = is_carving(config)
+        if carving:
+            # No prompt: empty the sketched region (occupancy -> 0 where w is small).
+            _, log_empty = occupancy_log_probabilities(density_edit, config.preservation_delta)
+            terms.carve = ((1 - weight) * -log_empty).mean()
+        else:
+            as_image = lambda rgb: rgb.reshape(1, height, width, 3).permute(0, 3, 1, 2)  # noqa: E731
+
+            def base_image() -> Tensor:
+                with self._average_appearance():
+                    return as_image(self.render_base(self._collide(random_view.flatten()))["rgb"])
+
+            terms.guidance = self.guidance_losses(as_image(view["rgb"]), data["random_camera"], base_image, step)
+            if sketch is not None:
+                opacity = sketch["accumulation"]
+                if config.silhouette_opacity == "editable":
+                    opacity = self.editable_accumulation(sketch_samples.frustums.get_positions(), sketch["_weights"],
+                                                         opacity, sketch.get("_ray_indices"))
+                terms.sketch = (opacity, sketch_masks)
+            if config.lambda_new_mass > 0:
+                # New mass on sketch rays the edit has already made opaque (or off the sketches) fades unless the
+                # guidance holds it; the base's own opacity on a sketch ray (a table behind it) does not count.
+                gate = (self.sketch_ray_opacity.gate(samples.frustums.get_positions(),
+                                                     opacity.detach() - self._base_sketch_opacity(sketch_rays),
+                                                     sketch_masks)
+                        if sketch is not None else None)
+                terms.new_mass = new_mass_loss(density_edit, base_outputs[FieldHeadNames.DENSITY], weight,
+                                               config.preservation_delta, gate)
+        rendered = [view] + ([sketch] if sketch is not None else [])
+        photo = data.get("photo")
+        photo_metrics = {}
+        if photo is not None and self.photo_anchor_acts():
+            anchored = self.photo_anchor(*photo)
+            if anchored is not None:
+                terms.photo, photo_view, photo_metrics["photo_rays_kept"] = anchored
+                rendered.append(photo_view)
+        terms.representation = self._sampling_losses(rendered)
+        losses, metrics = self.objective(terms, carving)
+        metrics.update(photo_metrics)
+        metrics["mean_preservation_weight"] = weight.mean().detach()
+        metrics["edit_box_boost"] = torch.tensor(self.edit_box_boost())
+        return view, losses, metrics

@@ -1,0 +1,185 @@
+"""SKED on a nerfacto base: proposal-network sampling, forced into the edit box at first."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Dict, List, Optional, Sequence, Tuple, Type
+
+import numpy as np
+import torch
+from nerfstudio.cameras.camera_optimizers import CameraOptimizerConfig
+from nerfstudio.cameras.rays import RayBundle, RaySamples
+from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackAttributes, TrainingCallbackLocation
+from nerfstudio.field_components.field_heads import FieldHeadNames
+from nerfstudio.model_components.losses import interlevel_loss, scale_gradients_by_distance_squared
+from nerfstudio.models.nerfacto import NerfactoModel, NerfactoModelConfig
+from torch import Tensor
+from torch.nn import Parameter
+
+from sked_ns.models.nerf.field_edit import SkedMixin
+from sked_ns.method.options import (  # noqa: F401  (re-exported: the public names of the edit model)
+    SkedOptions,
+    SkedSettingsWarning,
+    warn_degenerate_settings,
+    without_lpips as _without_lpips,
+)
+from sked_ns.method.preservation import check_beta
+
+
+@dataclass
+class SkedNerfactoModelConfig(NerfactoModelConfig, SkedOptions):
+    """SKED on a nerfacto-style field. Architecture fields are copied from the base (options.copy_base_architecture)."""
+
+    EDIT_OWNED = SkedOptions.EDIT_OWNED | {
+        # the edit's own losses
+        "loss_coefficients", "interlevel_loss_mult", "distortion_loss_mult", "orientation_loss_mult",
+        "pred_normal_loss_mult",
+        # schedules of training from scratch: an edit starts from trained proposals (its anneal stays 1)
+        "proposal_update_every", "proposal_warmup", "use_proposal_weight_anneal", "proposal_weights_anneal_slope",
+        "proposal_weights_anneal_max_num_iters",
+        "edit_box_density", "grid_update_interval",  # SKED's sampling of the edit box
+    }
+
+    _target: Type = field(default_factory=lambda: SkedNerfactoModel)
+    edit_box_density: float = 2.0
+    """Proposal density added inside the sketches' visual hull (within the edit box) during warm-up, per unit
+    of box diagonal."""
+    camera_optimizer: CameraOptimizerConfig = field(default_factory=lambda: CameraOptimizerConfig(mode="off"))
+    """Edits keep the base's cameras."""
+
+
+class SkedNerfactoModel(SkedMixin, NerfactoModel):
+    """Editable nerfacto field + frozen base + sketch geometry + guidance."""
+
+    config: SkedNerfactoModelConfig
+    BASE_PREFIXES = ("field.", "proposal_networks.")
+
+    def populate_modules(self) -> None:
+        check_beta(self.config.beta)
+        self.config = self._scaled_config()
+        scale = self.config.samples_per_ray_scale
+        self.config.num_nerf_samples_per_ray = max(4, round(self.config.num_nerf_samples_per_ray * scale))
+        self.config.num_proposal_samples_per_ray = tuple(
+            max(4, round(n * scale)) for n in self.config.num_proposal_samples_per_ray
+        )
+        with _without_lpips():
+            super().populate_modules()
+        self._setup_sked()
+        self._load_base_weights()
+        self._freeze_base(field=self.field, proposal_networks=self.proposal_networks)
+        # Proposals see kept space as the base does, so a ray through kept space only samples as the base's did.
+        base_fns = [network.density_fn for network in self.frozen_base.proposal_networks]
+        self.density_fns = [self.held_density_fn(fn, base_fns[min(i, len(base_fns) - 1)])
+                            for i, fn in enumerate(self.density_fns)]
+        self._boost_proposals_in_edit_box()
+
+    @torch.no_grad()
+    def render_base(self, ray_bundle: RayBundle) -> Dict[str, Tensor]:
+        """The frozen base seen along `ray_bundle` (already collided), with its own proposal networks."""
+        base = self.frozen_base
+        outputs, samples, _, weights = self._render_with(ray_bundle, base.field, [p.density_fn for p in base.proposal_networks])
+        outputs["preservation_weight"] = self.expected_preservation(samples.frustums.get_positions(), weights,
+                                                                    outputs["accumulation"])
+        return {key: value for key, value in outputs.items() if key not in ("weights_list", "ray_samples_list")}
+
+    # ---- sampling the edit region -----------------------------------------------------------
+    def _boost_proposals_in_edit_box(self) -> None:
+        """Add density inside the sketches' visual hull to the proposal networks during warm-up.
+
+        A nerfacto base has no mass where the new content goes, so its proposal networks
+        would never place samples there; the boost does until they learn the new mass. Only
+        the hull (where every view's mask agrees), not the whole edit box: samples, and so new
+        mass, in the box's empty corners are haze from other viewpoints.
+        """
+        diagonal = float(np.linalg.norm(self.edit_box.max - self.edit_box.min).clip(1e-6))
+
+        def boosted(density_fn):
+            def density(positions: Tensor, times: Optional[Tensor] = None) -> Tensor:
+                value = density_fn(positions, times)
+                strength = self.config.edit_box_density * self.edit_box_boost()
+                if strength > 0:
+                    value = value + strength / diagonal * self.in_sketch_hull(positions)[..., None].to(value.dtype)
+                return value
+
+            return density
+
+        self.density_fns = [boosted(fn) for fn in self.density_fns]
+
+    def get_training_callbacks(self, training_callback_attributes: TrainingCallbackAttributes) -> List[TrainingCallback]:
+        """SKED's step, and the proposal sampler's update schedule; no proposal-weight anneal.
+
+        nerfacto's anneal restarts at 0 for every run: the trained base would be sampled almost
+        uniformly for hundreds of steps. The base's proposals are trained, so anneal stays 1.
+        """
+        self.proposal_sampler.set_anneal(1.0)
+        return [
+            self.sked_step_callback(),
+            TrainingCallback(where_to_run=[TrainingCallbackLocation.AFTER_TRAIN_ITERATION], update_every_num_iters=1,
+                             func=self.proposal_sampler.step_cb),
+        ]
+
+    def get_param_groups(self) -> Dict[str, List[Parameter]]:
+        groups = self._hash_grid_groups(proposal_networks=self.proposal_networks, fields=self.field)
+        self.camera_optimizer.get_param_groups(param_groups=groups)
+        return groups
+
+    # ---- rendering ------------------------------------------------------------------------
+    def _render_with(self, ray_bundle: RayBundle, field, density_fns) -> Tuple[Dict, RaySamples, Dict, Tensor]:
+        """nerfacto's render with the given field and proposal densities: the edit's, or the frozen base's.
+
+        Returns the outputs, the final samples, the field outputs there and their weights (L_pres
+        and the preservation-weight output need them; nerfacto's own get_outputs returns neither).
+        """
+        ray_samples, weights_list, ray_samples_list = self.proposal_sampler(ray_bundle, density_fns=density_fns)
+        evaluate = lambda module, samples: module.forward(samples, compute_normals=self.config.predict_normals)  # noqa: E731
+        base_outputs = None
+        if field is self.field:
+            field_outputs, base_outputs = self._held_outputs(ray_samples, evaluate)
+        else:
+            field_outputs = evaluate(field, ray_samples)
+        if self.config.use_gradient_scaling:
+            field_outputs = scale_gradients_by_distance_squared(field_outputs, ray_samples)
+        weights = ray_samples.get_weights(field_outputs[FieldHeadNames.DENSITY])
+        weights_list.append(weights)
+        ray_samples_list.append(ray_samples)
+        with torch.no_grad():
+            depth = self.renderer_depth(weights=weights, ray_samples=ray_samples)
+        outputs = {
+            "rgb": self.renderer_rgb(rgb=field_outputs[FieldHeadNames.RGB], weights=weights),
+            "accumulation": self.renderer_accumulation(weights=weights),
+            "depth": depth,
+            "expected_depth": self.renderer_expected_depth(weights=weights, ray_samples=ray_samples),
+            "weights_list": weights_list,
+            "ray_samples_list": ray_samples_list,
+        }
+        if self.config.predict_normals:
+            normals = self.renderer_normals(normals=field_outputs[FieldHeadNames.NORMALS], weights=weights)
+            outputs["normals"] = self.normals_shader(normals)
+            outputs["pred_normals"] = self.normals_shader(
+                self.renderer_normals(field_outputs[FieldHeadNames.PRED_NORMALS], weights=weights))
+        for i in range(self.config.num_proposal_iterations):
+            outputs[f"prop_depth_{i}"] = self.renderer_depth(weights=weights_list[i], ray_samples=ray_samples_list[i])
+        if base_outputs is not None:
+            outputs["_base_field_outputs"] = base_outputs  # L_pres compares the two at the same samples
+        return outputs, ray_samples, field_outputs, weights
+
+    def _render(self, ray_bundle: RayBundle):
+        outputs, samples, field_outputs, weights = self._render_with(ray_bundle, self.field, self.density_fns)
+        outputs["_weights"] = weights  # L_sil's editable opacity needs them
+        return outputs, samples, field_outputs
+
+    def _sampling_losses(self, rendered: Sequence[Dict[str, Tensor]]) -> Dict[str, Tensor]:
+        loss = sum(interlevel_loss(r["weights_list"], r["ray_samples_list"]) for r in rendered)
+        return {"interlevel_loss": self.config.interlevel_loss_mult * loss}
+
+    def get_outputs(self, ray_bundle: RayBundle):
+        outputs, samples, _, weights = self._render_with(ray_bundle, self.field, self.density_fns)
+        outputs.pop("_base_field_outputs", None)
+        if self.training:
+            return outputs
+        # Proposal samples use a lot of memory and only the interlevel loss needs them.
+        outputs = {key: value for key, value in outputs.items() if key not in ("weights_list", "ray_samples_list")}
+        outputs["preservation_weight"] = self.expected_preservation(samples.frustums.get_positions(), weights,
+                                                                    outputs["accumulation"])
+        return self._steer(ray_bundle, outputs)
+

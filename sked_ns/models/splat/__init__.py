@@ -1,0 +1,1 @@
+"""Gaussian splatting: splatfacto edits and their rasterizer."""

@@ -1,0 +1,1 @@
+"""Sketch sets, cameras, the data frame and random views: what an edit is given."""
