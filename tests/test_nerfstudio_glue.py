@@ -15,7 +15,9 @@ from nerfstudio.engine.trainer import Trainer
 from nerfstudio.models.nerfacto import NerfactoModelConfig
 
 from sked_ns import compat
-from sked_ns.engine.base_scene import base_family, copy_base_architecture, resolve_base
+from sked_ns.engine.base_scene import resolve_base
+from sked_ns.method.options import copy_base_architecture
+from sked_ns.models.registry import family as base_family
 from sked_ns.engine.datamanager import SkedDataManager
 from sked_ns.models.nerf.nerfacto import SkedNerfactoModelConfig
 from sked_ns.models.nerf.ngp import SkedNGPModelConfig

@@ -288,7 +288,7 @@ def _demo_frame():
 
 
 def test_a_sketch_set_declared_in_the_wrong_frame_is_refused_naming_the_field_and_value(tmp_path):
-    from sked_ns.engine.datamanager import SKETCH_FRAME, TRAINING_CAMERAS, model_frame_sketches
+    from sked_ns.sketches.data_frame import SKETCH_FRAME, TRAINING_CAMERAS, model_frame_sketches
     from sked_ns.demo.scenes import sphere as scene
 
     transform, positions, centre = _demo_frame()

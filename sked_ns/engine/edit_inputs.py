@@ -52,7 +52,8 @@ def check_sketches_in_data(config) -> None:
     """The data as its dataparser reads it, and the sketch set in the frame it gives: placed as the model places it
     (model_frame_sketches) and boxed inside its scene box (compute_edit_box), and the base trained in that frame."""
     from sked_ns.engine.base_scene import check_same_frame, dataparser_name, resolve_base
-    from sked_ns.engine.datamanager import model_frame_sketches, outputs_transform, sketch_frame_metadata
+    from sked_ns.engine.datamanager import outputs_transform, sketch_frame_metadata
+    from sked_ns.sketches.data_frame import model_frame_sketches
     from sked_ns.method.edit_box import compute_edit_box
 
     datamanager, model = config.pipeline.datamanager, config.pipeline.model
