@@ -1,4 +1,9 @@
-"""Shared helpers for the tests: random cameras, masks and sketch views."""
+"""Shared helpers for the tests (random cameras, masks and sketch views), the demo base fixtures, and the markers.
+
+Tests live by layer, as the package does (tests/<layer>/). `pytest -m "not slow"` is the fast loop: a test is slow
+when it trains or edits a scene (it uses one of SLOW_FIXTURES, or says @pytest.mark.slow); browser, slurm and cuda
+mark tests that need Chromium, a Slurm cluster or a GPU (they skip without one).
+"""
 
 from __future__ import annotations
 
@@ -20,6 +25,25 @@ if os.environ.get("PYTEST_XDIST_WORKER"):
     import torch
 
     torch.set_num_threads(1)
+
+
+SLOW_FIXTURES = {
+    # fixtures that train a base or run an edit
+    "scene", "ngp_scene", "splat_scene", "splat_run", "edited", "resumed", "tiny_edit", "small_edit", "ngp_edited",
+    "bounded_base", "silhouette_only", "silhouette_only_bulk", "sketch_viewer", "slurm",
+}
+def pytest_collection_modifyitems(config, items):
+    for item in items:
+        if SLOW_FIXTURES & set(getattr(item, "fixturenames", ())):
+            item.add_marker(pytest.mark.slow)
+        if item.path.name == "test_browser.py":
+            item.add_marker(pytest.mark.browser)
+            item.add_marker(pytest.mark.slow)
+        if "slurm" in getattr(item, "fixturenames", ()):
+            item.add_marker(pytest.mark.slurm)
+        if any(mark.name == "skipif" and "cuda" in str(mark.kwargs.get("reason", "")).lower()
+               for mark in item.iter_markers()):
+            item.add_marker(pytest.mark.cuda)
 
 
 def random_pose(rng: np.random.Generator, radius_range=(1.5, 3.0)) -> np.ndarray:

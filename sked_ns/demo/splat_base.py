@@ -170,10 +170,7 @@ def fit_splat_base(data: Path, output_dir: Path, fit: SplatFit = SplatFit(), see
 
     `seed_points`: (points, colours) in the data frame (what a COLMAP cloud gives splatfacto), or None for
     splatfacto's uniform random seeds. The run folder holds only what ns-train writes; the fit's figures
-    (Gaussian count, PSNR of the seeds, of the training and of the evaluation-split photos) go to `last_fit`.
-    Measured with SplatFit's defaults on one thread: the demo sphere (24 photos, 96 px) 2000 seeds -> 5175
-    Gaussians, 24.4 dB on its photos, 22.4 dB held out, 47 CPU-s; the benchmark scenes (48 photos, 128 px)
-    20-24 dB held out in 33-51 CPU-s."""
+    (Gaussian count, PSNR of the seeds, of the training and of the evaluation-split photos) go to `last_fit`."""
     from nerfstudio.engine.optimizers import Optimizers
 
     from sked_ns.models.nerf.nerfacto import _without_lpips

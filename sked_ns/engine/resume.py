@@ -31,11 +31,11 @@ DATA_SETTINGS = ("data", "pipeline.datamanager.data", "pipeline.datamanager.data
 RUN_FIELDS = ("timestamp", "load_dir", "load_step", "load_checkpoint", "load_config", "progressive")
 """How this command was started, not part of the edit: this run's own, never compared with the saved edit's."""
 SETTINGS_SINCE = {
-    "pipeline.datamanager.edit_fill": (0.0, "428301a"),
-    "pipeline.model.guidance.sampling": ("pixel-centre", "c291766"),
+    "pipeline.datamanager.edit_fill": (0.0, "0.2"),
+    "pipeline.model.guidance.sampling": ("pixel-centre", "0.2"),
 }
-"""Settings added after edits were saved, each with the value that continues such an edit as it ran and the commit
-that added it: a config.yml without the setting would otherwise read the new default (its class attribute)."""
+"""Settings added after edits were saved, each with the value that continues such an edit as it ran and the last
+sked_ns version without it: a config.yml without the setting would otherwise read the new default."""
 BASE_SHAPED = ("pipeline.model",)
 """Configs whose class follows from the base (nerfacto, instant-ngp or splatfacto), not from a subcommand: the
 preset's class parsed here is no change, and each typed setting in them is compared on its own."""
@@ -198,7 +198,7 @@ def settings_saved_before(saved) -> Dict[str, object]:
 def resumed_config(config, saved, default, run_dir: Path, argv=None) -> None:
     """Make `config` the `saved` edit's config (in place), with the settable settings typed on this command line."""
     for path, value in settings_saved_before(saved).items():
-        CONSOLE.print(f"{run_dir / 'config.yml'} predates {flag(path)} ({SETTINGS_SINCE[path][1]}): continuing with "
+        CONSOLE.print(f"{run_dir / 'config.yml'} predates {flag(path)} (sked_ns {SETTINGS_SINCE[path][1]} or older): continuing with "
                       f"{_show(value)}, as it ran")
     typed = typed_settings(config, default, argv)
     changes = refused_changes(typed, config, saved)

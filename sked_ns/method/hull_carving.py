@@ -1,4 +1,4 @@
-"""Which new mass L_sil no longer needs: points whose sketch rays are already opaque (issue 23).
+"""Which new mass L_sil no longer needs: points whose sketch rays are already opaque.
 
 L_sil asks each sketch ray for one opaque point and pulls every point of the ray's stretch of the visual
 hull alike, so it fills the whole hull. Once every sketch ray through a point is opaque, that point's new

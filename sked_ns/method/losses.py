@@ -116,7 +116,7 @@ def new_mass_loss(
     gate: Optional[Float[Tensor, "*bs num_samples 1"]] = None,
 ) -> Tensor:
     """L_new = sum_i (1 - w_i) g_i relu(alpha_e,i - alpha_o,i) / sum_i (1 - w_i): the opacity the edit adds over
-    the base, per unit of the region it may change (ours, issue 23).
+    the base, per unit of the region it may change (ours).
 
     L_sil asks each sketch ray for one opaque point but pulls every point of the ray's stretch of the visual
     hull alike, so it fills the whole hull; nothing then removes mass no loss asks for. This does: once the

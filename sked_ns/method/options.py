@@ -51,7 +51,7 @@ class SkedOptions:
     """Weight of the colour term inside L_pres."""
     preservation_target: Literal["occupancy", "density"] = "density"
     """What L_pres holds the edit to: the base's own density (a soft base stays soft) or, as the paper, its occupancy
-    thresholded at occupancy_threshold (sharpens a soft base: -1.2 vs -0.2 dB kept; docs/method.md, L_pres)."""
+    thresholded at occupancy_threshold (which sharpens a soft base; docs/method.md, L_pres)."""
     lambda_sil: float = 1.0
     """Weight of L_sil."""
     silhouette_normalisation: Literal["image", "sketch"] = "image"
@@ -105,9 +105,8 @@ class SkedOptions:
     # Gaussian-splat bases only (splat_model.py); here so `ns-train sked` can parse them for any base.
     num_seeds: int = 3000
     """Splats: new Gaussians seeded inside the sketches' visual hull for new content (none when carving), each as wide
-    as their spacing (seed_size). With supersampled training renders more seeds give a sharper part (hat / vase /
-    crate, 100 CPU iterations, changed region vs target: 250 seeds 17.8 / 16.8 / 21.7 dB, 1,000 19.1 / 17.2 / 21.9,
-    3,000 19.9 / 17.3 / 22.8, 10,000 20.3 / 17.8 / 21.6); densification adds more where the edit runs long enough."""
+    as their spacing (seed_size). With supersampled training renders more seeds give a sharper part, at more memory
+    and time (docs/benchmarks.md); densification adds more where the edit runs long enough."""
     seed_opacity: float = 0.005
     """Splats: opacity of the seeds at the start: nearly transparent, but above the rasterizer's 1/255 cut-off, under
     which a Gaussian is skipped and gets no gradient."""
@@ -121,9 +120,8 @@ class SkedOptions:
     splat_supersampling: int = 4
     """Splats: the random view (and the base render the guidance compares it with) is rendered at this many times its
     resolution and averaged down to it, so that a Gaussian's footprint between two pixel centres is fitted too (1: one
-    sample a pixel, under which a seed fitted at a CPU edit's 24 px shows as a soft blob from other views; hat / vase /
-    crate at 100 iterations, changed region vs target 12.2 / 9.7 / 16.9 dB at 1, 16.2 / 12.8 / 19.9 at 2, 17.8 /
-    16.8 / 21.7 at 4). The sketch views keep one: L_sil averaged over a pixel would fill the sketch's edge pixels."""
+    sample a pixel, under which a seed fitted at a small render shows as a soft blob from other views; measured in
+    docs/benchmarks.md). The sketch views keep one: L_sil averaged over a pixel would fill the sketch's edge pixels."""
 
     @property
     def effective_lambda_pres(self) -> float:

@@ -25,8 +25,8 @@ from sked_ns.sketches.cameras import ray_aabb
 
 MIN_BASE_PHOTO_PSNR = 15.0
 """PSNR (dB) under which the base does not explain the photos it is given, so they must not anchor the edit:
-a trained base renders its own training photos at 25 dB or more (the tests' 400-step demo base at 22 dB,
-a 60-step one at 19); a 30-step one scores 12 dB, inverted photos 1 dB."""
+a trained base renders its own training photos far above the threshold, a barely fitted one or other photos far
+below it (docs/method.md, Photo anchor)."""
 LOW_BASE_PHOTO_PSNR = 20.0
 """Under this the anchor pulls kept content towards photos the base fits poorly: warned."""
 GRID_RESOLUTION = 64

@@ -50,7 +50,7 @@ class Representation:
 
 REPRESENTATIONS: Tuple[Representation, ...] = (  # the most specific config type first
     Representation("splatfacto", SplatfactoModelConfig, "sked_ns.models.splat.model:SkedSplatModelConfig", "cameras",
-                   optimizers="sked_ns.models.splat.model:splat_optimizers"),
+                   optimizers="sked_ns.models.splat.rates:splat_optimizers"),
     Representation("instant-ngp", InstantNGPModelConfig, "sked_ns.models.nerf.ngp:SkedNGPModelConfig", "rays"),
     Representation("nerfacto", NerfactoModelConfig, "sked_ns.models.nerf.nerfacto:SkedNerfactoModelConfig", "rays"),
 )

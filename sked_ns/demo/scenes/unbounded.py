@@ -1,6 +1,6 @@
 """Held-out unbounded benchmark scenes: objects on a textured ground that runs to the horizon, under a sky.
 
-Defined before any tuning of the edit (issue 22) and reported apart from the object scenes
+Defined before any tuning of the edit and reported apart from the object scenes
 (`benchmark_scenes`): a capture as users make one outdoors, with cameras among the objects that
 see the horizon and the sky, so that `ns-train nerfacto` with its defaults (scene contraction,
 appearance embeddings) has a far, contracted field to fill, where floaters would go.

@@ -4,7 +4,7 @@ SKED's L_pres holds kept content softly: the editable field is a copy of the bas
 back towards it wherever the preservation weight w is high. Every step on the new part also moves
 density and colour far from it (likely through hash entries shared between cells), which L_pres and
 the photo anchor can only pull back afterwards: specks of new opacity across a capture's far field
-(issue 22). The splat model holds its kept
+The splat model holds its kept
 Gaussians exactly; this is the same for a field: at a sample whose w exceeds `keep_threshold` the
 edit *is* the base (outputs copied, no gradient), and the editable field is evaluated, and
 trained, only at the others. `keep_threshold` 1 gives the paper's soft hold (w never exceeds 1).

@@ -19,7 +19,7 @@ import pytest
 
 from sked_ns.sketches.sketch_set import load_sketch_set
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 ARTIFACTS = Path(os.environ.get("SKED_TEST_ARTIFACTS", ROOT / "test-artifacts"))
 
 

@@ -127,7 +127,7 @@ def test_sketch_ray_opacity_reads_the_pixel_each_point_projects_to():
 def silhouette_only_bulk(scene, tmp_path_factory):
     """Hat edits of the demo base with guidance off (weight 0): L_sil alone grows the mass, in the hat's two-view
     hull, at half the base's samples; the hull's new occupancy off the hat (bulk) and on it. Cached per weight."""
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+    sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "benchmarks"))
     from hull_bulk import model_bulk
 
     from sked_ns.demo.scenes.sphere import SCENES

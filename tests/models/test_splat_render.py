@@ -14,7 +14,7 @@ from sked_ns.models.splat import projection
 from sked_ns.models.splat import torch_rasterizer as splat_render
 from sked_ns.models.splat.rasterize import rasterize
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "benchmarks"))
 import splat_agreement  # noqa: E402  (benchmarks/: only the agreement check uses it)
 
 INPUTS = ("means", "quats", "scales", "opacities", "colors")

@@ -10,6 +10,7 @@ import pytest
 from sked_ns.demo.run import run
 
 
+@pytest.mark.slow
 def test_demo_edits_the_scene_and_reports(tmp_path):
     summary = run(tmp_path / "demo", size=48, iterations=30, base_steps=300)
     assert summary["guidance"] == "reference"  # no diffusion weights here, and no prompt

@@ -122,6 +122,7 @@ def test_far_points_stay_finite(rng):
     assert torch.isfinite(field.preservation_weight(far, 0.025)).all()
 
 
+@pytest.mark.slow
 def test_compiled_lookup_equals_eager(rng):
     views = [random_view(rng, 40 + 8 * j, 32, f"v{j}") for j in range(3)]
     points = torch.tensor(_points(rng, 70_000), dtype=torch.float32)  # > one chunk

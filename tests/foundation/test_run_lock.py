@@ -25,25 +25,7 @@ from sked_ns.engine.base_scene import dataparser_name, resolve_base
 from sked_ns.engine.edit_run import edit_config
 from sked_ns.errors import SkedUserError
 
-HOLD = "import sys, time; from sked_ns.run_lock import hold; hold(sys.argv[1], ''); print('held', flush=True); time.sleep(900)"
-"""Another process holding a folder as an edit does, until it is killed."""
-WRITE = ("import sys, time; from sked_ns.run_lock import writing\nwith writing(sys.argv[1], ''):\n"
-         " print('held', flush=True); time.sleep(900)")
-"""Another process writing a file (or a folder's files), until it is killed."""
-
-
-def holding(folder: Path, code: str = HOLD, *args: str) -> subprocess.Popen:
-    child = subprocess.Popen([sys.executable, "-c", code, str(folder), *args], stdout=subprocess.PIPE, text=True)
-    for line in child.stdout:  # after what the command prints itself
-        child.said = line.split()
-        if child.said[-1:] == ["held"]:
-            return child
-    pytest.fail(f"the child did not take the lock (exit code {child.wait()})")
-
-
-def killed(child: subprocess.Popen) -> None:
-    child.send_signal(signal.SIGKILL)
-    child.wait()
+from lock_helpers import HOLD, WRITE, holding, killed  # noqa: E402,F401  (tests/, shared with sked-batch's tests)
 
 
 def tiny_edit(scene, output: Path, prompt: str):
@@ -219,7 +201,7 @@ def test_sked_eval_leaves_outputs_another_sked_eval_writes(tmp_path, monkeypatch
     (run / "config.yml").write_text("method_name: sked\n")
     other = holding(run / "sked_eval.json", WRITE)
     monkeypatch.setattr(evaluate, "evaluate", lambda *args: pytest.fail("evaluated while another sked-eval writes"))
-    # The inputs pass (tests/test_evaluate.py checks them): only the outputs' writer is under test here.
+    # The inputs pass (tests/evaluation/test_evaluate.py checks them): only the outputs' writer is under test here.
     monkeypatch.setattr(evaluate, "edit_scene", lambda run: types.SimpleNamespace(model_config=None))
     monkeypatch.setattr(evaluate, "checked_sketches", lambda *args: (None, None))
     monkeypatch.setattr(evaluate, "check_sketch_masks", lambda *args: None)
@@ -249,6 +231,7 @@ def test_a_sketch_set_has_one_writer(tmp_path, rng):
     assert len(load_sketch_set(tmp_path / "hat").views) == 2
 
 
+@pytest.mark.slow
 def test_a_demo_leaves_the_output_folder_another_demo_writes(tmp_path, monkeypatch):
     from sked_ns.demo import run as demo
 

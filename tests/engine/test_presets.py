@@ -15,7 +15,7 @@ import torch
 from sked_ns.engine.presets import PRESETS, read_preset
 from sked_ns.engine.trainer import resolve_edit
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def test_every_preset_is_a_registered_method_with_its_settings():
@@ -136,3 +136,29 @@ def test_learning_rate_decay_spans_the_edit_the_user_asked_for(scene, tmp_path):
     config.data, config.machine.device_type = scene["data"], "cpu"
     resolve_edit(config)
     assert {optimizer["scheduler"].max_steps for optimizer in config.optimizers.values()} == {300}
+
+
+HASH = r"\b(?=[0-9a-f]*[a-f])(?=[0-9a-f]*[0-9])[0-9a-f]{7,40}\b"
+DB_FIGURE = r"\b\d+(\.\d+)?\s*dB\b"
+
+
+def test_the_checks_for_stale_help_can_fail():
+    import re
+
+    assert re.search(HASH, "the commit 428301a added it") and re.search(DB_FIGURE, "17.8 dB at 250 seeds")
+    assert not re.search(HASH, "--pipeline.model.lambda-pres 5.0 dB-free") and not re.search(DB_FIGURE, "a 4x4 patch")
+
+
+@pytest.mark.parametrize("method", PRESETS)
+def test_ns_train_sked_help_says_what_and_why_not_figures(method):
+    """--help texts come from docstrings: benchmark figures, commit hashes and issue numbers there go stale."""
+    import re
+
+    result = subprocess.run([sys.executable, "-m", "nerfstudio.scripts.train", method, "--help"], capture_output=True,
+                            text=True, timeout=300, env={**__import__("os").environ, "COLUMNS": "200"})
+    assert result.returncode == 0, result.stderr[-2000:]
+    text = result.stdout
+    assert "--pipeline.model.lambda-pres" in text and "--pipeline.model.num-seeds" in text
+    assert re.findall(HASH, text) == []
+    assert [m.group(0) for m in re.finditer(DB_FIGURE, text)] == []
+    assert re.findall(r"\bissue \d+|\(#\d+\)", text) == []

@@ -13,7 +13,7 @@ import pytest
 import torch
 import yaml
 
-FIXTURES = Path(__file__).resolve().parent / "data" / "v0.3-runs"
+FIXTURES = Path(__file__).resolve().parents[1] / "data" / "v0.3-runs"
 WRITTEN_IN = ("/", "tmp", "sked-v0.3-fixtures")
 EDITS = {"nerfacto": "edits/nerfacto/edit/sked/run", "instant-ngp": "edits/instant-ngp/edit/sked/run",
          "splatfacto": "edits/splatfacto/edit/sked/run", "resumed": "edits/resumed/edit/sked/resumed",

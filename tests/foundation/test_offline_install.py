@@ -6,7 +6,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-OFFLINE = Path(__file__).resolve().parents[1] / ".ci" / "offline"
+OFFLINE = Path(__file__).resolve().parents[2] / ".ci" / "offline"
 sys.path.insert(0, str(OFFLINE))
 
 import lists  # noqa: E402

@@ -82,6 +82,7 @@ def _rays(model, view, resolution: int):
     return model._collide(camera.generate_rays(camera_indices=0, keep_shape=True).flatten())
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("base, keep_threshold", [("scene", 0.99), ("scene", 1.0), ("ngp_scene", 0.99)])
 def test_kept_space_renders_the_base_however_the_editable_field_moved(request, tmp_path, base, keep_threshold):
     model = _moved_model(request.getfixturevalue(base), tmp_path, keep_threshold)

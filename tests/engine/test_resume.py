@@ -237,7 +237,7 @@ def test_output_folder_under_a_file_is_refused_with_its_flag(tmp_path, monkeypat
 
 @pytest.fixture
 def inputs_pass(monkeypatch):
-    """A fake_run has no data nor sketches: the inputs' checks (tests/test_cli_errors.py) pass, the writing is tested."""
+    """A fake_run has no data nor sketches: the inputs' checks (tests/foundation/test_cli_errors.py) pass, the writing is tested."""
     import sked_ns.engine.trainer
 
     monkeypatch.setattr(sked_ns.engine.trainer, "check_edit_inputs", lambda config: None)

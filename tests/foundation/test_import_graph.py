@@ -11,7 +11,7 @@ import ast
 from pathlib import Path
 from typing import Dict, List, Set
 
-PACKAGE = Path(__file__).resolve().parents[1] / "sked_ns"
+PACKAGE = Path(__file__).resolve().parents[2] / "sked_ns"
 
 LAYERS: List[Set[str]] = [
     # 0: what everything may use

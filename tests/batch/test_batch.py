@@ -34,7 +34,7 @@ from sked_ns import run_lock
 from sked_ns.errors import SkedUserError
 
 from slurm_cluster import SlurmCluster, why_not
-from test_run_lock import WRITE, holding, killed
+from lock_helpers import WRITE, holding, killed
 
 TINY_FLAGS = ("--machine.device-type cpu --mixed-precision False --pipeline.model.guidance-resolution 16 "
               "--pipeline.model.silhouette-resolution 16 --steps-per-eval-image 1000000 pipeline.model.guidance:reference")

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
+BENCHMARKS = Path(__file__).resolve().parents[2] / "benchmarks"
 sys.path.insert(0, str(BENCHMARKS))
 
 import speed_accuracy  # noqa: E402
@@ -41,6 +41,7 @@ def test_plan_scales_presets_and_covers_every_knob():
     assert {r["scene"] for r in runs if r["group"] != "sweep"} == {"hat", "handle", "antenna"}
 
 
+@pytest.mark.slow
 def test_speed_accuracy_quick_run_writes_json_and_plot(tmp_path):
     output = tmp_path / "speed_accuracy.json"
     result = subprocess.run([sys.executable, str(BENCHMARKS / "speed_accuracy.py"), "--quick", "--output", str(output)],
@@ -55,6 +56,7 @@ def test_speed_accuracy_quick_run_writes_json_and_plot(tmp_path):
     assert "| sked-fast | preset |" in result.stdout
 
 
+@pytest.mark.slow
 def test_sds_iteration_smoke_run_with_a_tiny_model(tmp_path):
     output = tmp_path / "sds.json"
     result = subprocess.run([sys.executable, str(BENCHMARKS / "sds_iteration.py"), "--size", "tiny", "--iterations", "2",
@@ -67,6 +69,7 @@ def test_sds_iteration_smoke_run_with_a_tiny_model(tmp_path):
     assert "random weights" in data["diffusion_model"]
 
 
+@pytest.mark.slow
 def test_gpu_check_smoke_run_on_the_cpu(tmp_path):
     """The CUDA check's CPU twin: every phase runs and the issue's figures are in the JSON."""
     output = tmp_path / "gpu_check.json"

@@ -13,7 +13,7 @@ from sked_ns.sketches.cameras import project
 from sked_ns.method.edit_box import compute_edit_box
 from sked_ns.sketches.sketch_set import load_sketch_set, save_sketch_set
 
-CAT = Path(__file__).parent / "data" / "sked-authors-cat"
+CAT = Path(__file__).resolve().parents[1] / "data" / "sked-authors-cat"
 
 
 def test_reads_their_metadata_saved_from_cuda():

@@ -228,8 +228,8 @@ def test_a_nerfacc_kernel_call_without_cuda_is_explained(monkeypatch):
 def test_the_plugin_leaves_stock_nerfacc_alone():
     """Every ns-* command imports the plugin (method registry); a stock `ns-train instant-ngp` must still get
     nerfacc's own backend, untouched."""
-    probe = ("import sys; from nerfstudio.plugins.registry import discover_methods; methods, _ = discover_methods(); "
-             "assert 'sked' in methods and 'instant-ngp' in methods; import sked_ns.models.nerf.ngp; "
+    probe = ("import sys; from nerfstudio.configs.method_configs import all_methods; "
+             "assert 'sked' in all_methods and 'instant-ngp' in all_methods; import sked_ns.models.nerf.ngp; "
              "print('nerfacc.cuda._backend' in sys.modules)")
     result = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, timeout=300)
     assert result.returncode == 0, result.stderr[-2000:]

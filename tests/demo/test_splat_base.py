@@ -140,7 +140,7 @@ def test_the_fit_learns_the_photos(splat_run):
 def test_edit_quality_rows_name_their_base():
     import sys
 
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+    sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "benchmarks"))
     import edit_quality
 
     summary = {"psnr_keep_gt_base": 20.0, "psnr_keep_gt": 19.5, "psnr_keep_drop": 0.5, "leak": 0.01, "ios": 0.9,
@@ -159,7 +159,7 @@ def test_edit_quality_rows_name_their_base():
 def test_the_48_px_protocols_run_only_when_asked_and_differ_only_in_render_size():
     import sys
 
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+    sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "benchmarks"))
     import edit_quality
 
     assert edit_quality.DEFAULT_PROTOCOLS == ("cpu-100", "long")  # the README's 24 px rows; 48 px reported apart
@@ -171,6 +171,7 @@ def test_the_48_px_protocols_run_only_when_asked_and_differ_only_in_render_size(
         assert arguments[arguments.index(flag) + 1] == "48"
 
 
+@pytest.mark.slow
 def test_sked_demo_edits_a_splat_base_and_sked_eval_scores_it(tmp_path):
     """`sked-demo --base splatfacto`: the real `ns-train sked` edit of a CPU-fitted splatfacto run, before/after renders
     of the edit's frozen base, novel views; then `sked-eval` on that edit."""
