@@ -30,6 +30,7 @@ from sked_ns.errors import SkedFileNotFoundError, SkedUserError, check_writable_
 from sked_ns.engine.resume import preset_config, resumed_config, typed_settings
 from sked_ns.run_lock import hold, write_failure
 from sked_ns.engine.safe_step import GuardedGradScaler, GuardedOptimizers, StepGuard
+from sked_ns.method.frozen_base import base_implementation
 from sked_ns.method.options import SkedOptions, copy_base_architecture
 from sked_ns.models.registry import representation_of
 from sked_ns.engine.edit_inputs import check_edit_inputs
@@ -144,6 +145,8 @@ def start_edit(config: SkedTrainerConfig, base: BaseScene) -> None:
     """A new edit of `base`: the model shaped like it, starting at step 0 from its weights."""
     model = config.pipeline.model = edit_model_config(config.pipeline.model, base.model_config)
     model.base_checkpoint = base.checkpoint
+    if "implementation" in {f.name for f in fields(model)}:  # NeRF fields: the base's layout, not its config, decides
+        model.implementation = base_implementation(base.checkpoint)
     optimizers = representation_of(base.model_config).edit_optimizers(config.max_num_iterations, model)
     if optimizers is not None:  # the presets' optimisers are a NeRF's: e.g. Gaussians take the splat edit's groups
         config.optimizers = optimizers

@@ -63,3 +63,18 @@ def read_model_state(checkpoint: Path) -> Dict[str, Tensor]:
 def uses_tcnn(state: Dict[str, Tensor], prefix: str = "field.") -> bool:
     """tiny-cuda-nn modules store one flat `params` tensor; the torch ones named layers."""
     return any(key.startswith(prefix) and key.endswith(".params") for key in state)
+
+
+def base_implementation(checkpoint: Path, prefix: str = "field.") -> str:
+    """The field implementation the base's weights are laid out for ("tcnn" or "torch"), whatever its config says:
+    nerfstudio's "tcnn" falls back to torch where tinycudann is missing, so the layout is the truth. A tcnn layout
+    needs tinycudann here."""
+    import importlib.util
+
+    if not uses_tcnn(read_model_state(checkpoint), prefix):
+        return "torch"
+    if importlib.util.find_spec("tinycudann") is None:
+        raise SkedUserError(f"{checkpoint}: the base was trained with tiny-cuda-nn, whose weights only tinycudann can "
+                            "load. Install tinycudann here (pip install git+https://github.com/NVlabs/tiny-cuda-nn/"
+                            "#subdirectory=bindings/torch), or edit on the machine that trained the base.")
+    return "tcnn"

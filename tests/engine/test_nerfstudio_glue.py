@@ -3,6 +3,7 @@ the version layer (compat), refused settings, and how a base's model config beco
 
 from __future__ import annotations
 
+import copy
 import types
 
 import pytest
@@ -192,3 +193,35 @@ def test_run_edit_seeds_as_ns_train_does(tmp_path):
     assert torch.equal(first[0], second[0]) and np.array_equal(first[1], second[1]) and first[2] == second[2]
     config.machine.seed = 43
     assert not torch.equal(run_edit(config).draws[0], first[0])
+
+
+@pytest.mark.parametrize("layout, tinycudann, expected", [("torch", True, "torch"), ("torch", False, "torch"),
+                                                         ("tcnn", True, "tcnn"), ("tcnn", False, "refused")])
+def test_the_edit_takes_the_field_implementation_from_the_base_checkpoint(tmp_path, monkeypatch, layout, tinycudann,
+                                                                          expected):
+    """A base trained where tinycudann was missing says implementation "tcnn" in its config but holds torch weights:
+    the layout decides, and only a tcnn layout without tinycudann is refused (before anything is written)."""
+    import importlib.util
+
+    from sked_ns.engine.base_scene import BaseScene
+    from sked_ns.engine.resume import preset_config
+    from sked_ns.engine.trainer import start_edit
+    from sked_ns.errors import SkedUserError
+
+    weights = ({"_model.field.mlp_base.params": torch.zeros(8)} if layout == "tcnn"
+               else {"_model.field.mlp_base.layers.0.weight": torch.zeros(2, 2)})
+    checkpoint = tmp_path / "step-000000001.ckpt"
+    torch.save({"step": 1, "pipeline": weights}, checkpoint)
+    real_find_spec = importlib.util.find_spec
+    monkeypatch.setattr(importlib.util, "find_spec", lambda name, *args: (
+        (types.SimpleNamespace() if tinycudann else None) if name == "tinycudann" else real_find_spec(name, *args)))
+    base_config = copy.deepcopy(method_configs["nerfacto"])
+    assert base_config.pipeline.model.implementation == "tcnn"  # nerfstudio's default, whatever was installed
+    config = preset_config("sked")
+    base = BaseScene(run_dir=tmp_path, checkpoint=checkpoint, config=base_config)
+    if expected == "refused":
+        with pytest.raises(SkedUserError, match="Install tinycudann here"):
+            start_edit(config, base)
+    else:
+        start_edit(config, base)
+        assert config.pipeline.model.implementation == expected

@@ -81,8 +81,8 @@ class SkedMixin(SkedEdit):
             raise SkedUserError(
                 f"{checkpoint}: the base was trained with the {trained} implementation, but this edit builds "
                 f"{here} modules, whose weights are laid out differently. "
-                + ("Install tinycudann here, or edit on the machine that trained the base."
-                   if uses_tcnn(state) else "Pass --pipeline.model.implementation torch.")
+                + ("Install tinycudann here, or edit on the machine that trained the base." if uses_tcnn(state) else
+                   "A new edit takes the base's layout by itself: pass the base's run folder as --load-dir.")
             )
         embedding = state.get("field.embedding_appearance.embedding.weight")
         if embedding is not None and embedding.shape[0] != self.num_train_data:
