@@ -29,7 +29,7 @@ def run_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="sked-batch", usage=USAGE, description=(
         "A batch of SKED edits from a plan file (YAML or TOML): one `ns-train` run per edit, prompt and seed, each in "
         "its own folder; submitting the plan again skips finished edits, resumes interrupted ones and reruns failed "
-        "ones. See the README, 'Many edits: sked-batch'."))
+        "ones. See docs/batch.md."))
     parser.add_argument("plan", type=Path, help="the plan file")
     where = parser.add_mutually_exclusive_group(required=True)
     where.add_argument("--local", action="store_true", help="run here: one after another, or one per visible GPU at once")
@@ -40,12 +40,12 @@ def run_parser() -> argparse.ArgumentParser:
     parser.add_argument("--job", action="append", default=None, metavar="NAME", help="only these jobs (repeatable)")
     parser.add_argument("--dry-run", action="store_true", help="print what would run (and the sbatch script) and stop")
     slurm = parser.add_argument_group("--slurm (over the plan's slurm: settings)")
-    slurm.add_argument("--partition")
+    slurm.add_argument("--partition", help="Slurm partition (default: the cluster's)")
     slurm.add_argument("--time", help="per edit, Slurm's format (4:00:00); an edit it cuts resumes when resubmitted")
     slurm.add_argument("--gpus", type=int, help="GPUs per edit (default 1; 0 on a CPU partition)")
-    slurm.add_argument("--account")
-    slurm.add_argument("--cpus-per-task", type=int)
-    slurm.add_argument("--mem")
+    slurm.add_argument("--account", help="Slurm account to charge (default: yours)")
+    slurm.add_argument("--cpus-per-task", type=int, help="CPU cores per edit (default: Slurm's)")
+    slurm.add_argument("--mem", help="memory per edit, Slurm's format (e.g. 32G; default: Slurm's)")
     slurm.add_argument("--max-parallel", type=int, help="at most this many edits at once (--array=0-N%%M)")
     slurm.add_argument("--sbatch-arg", action="append", default=None, metavar="ARG",
                        help="any other sbatch option, e.g. --sbatch-arg=--qos=high (repeatable)")

@@ -16,8 +16,8 @@ def read_plan_file(path: Path) -> dict:
     if path.is_dir():
         raise SkedUserError(f"sked-batch {path}: a folder; pass the plan file (YAML or TOML) itself.")
     if not path.is_file():
-        raise SkedFileNotFoundError(f"sked-batch {path}: no such plan file (a YAML or TOML file; see the README, "
-                                    "'Many edits: sked-batch').")
+        raise SkedFileNotFoundError(f"sked-batch {path}: no such plan file (a YAML or TOML file; see "
+                                    "docs/batch.md).")
     try:
         text = path.read_text()
     except (OSError, UnicodeDecodeError) as error:
@@ -40,7 +40,7 @@ def read_plan_file(path: Path) -> dict:
     except Exception as error:  # the parser's message says where
         raise SkedUserError(f"{path}: cannot read the plan: {error}") from error
     if not isinstance(data, dict):
-        raise SkedUserError(f"{path}: a plan is a mapping with an `edits:` list (see the README, 'Many edits: sked-batch').")
+        raise SkedUserError(f"{path}: a plan is a mapping with an `edits:` list (see docs/batch.md).")
     return data
 
 
@@ -96,7 +96,7 @@ def load_plan(path: Path, check_paths: bool = True) -> Plan:
     check.unknown("defaults", defaults, [f for f in EDIT_FIELDS if f != "name"])
     edits = data.get("edits")
     if not isinstance(edits, list) or not edits:
-        check.fail("edits", "a list of edits, each with base, data and sketches (see the README, 'Many edits: sked-batch').")
+        check.fail("edits", "a list of edits, each with base, data and sketches (see docs/batch.md).")
     slurm = data.get("slurm") or {}
     if not isinstance(slurm, dict):
         check.fail("slurm", f"a mapping of {', '.join(SLURM_FIELDS)}.")

@@ -23,6 +23,7 @@ from sked_ns.batch.plan import Job, Plan
 from sked_ns.batch.state import write_marker
 from sked_ns.batch.task import job_env, now, run_job
 from sked_ns.errors import SkedUserError
+from sked_ns.progress import Progress
 
 
 def visible_gpus() -> List[str]:
@@ -42,9 +43,17 @@ def run_local(jobs: List[Job], devices: Optional[List[str]] = None) -> Dict[str,
     """Run the jobs here: one after another, or one per device at once (CUDA_VISIBLE_DEVICES=<device> each)."""
     devices = visible_gpus() if devices is None else devices
     codes: Dict[str, int] = {}
+    progress = Progress("sked-batch", "edits", len(jobs))
+
+    def finished(job: Job, code: int) -> None:
+        codes[job.name] = code
+        failed = sum(1 for value in codes.values() if value != 0)
+        progress.step(f": {job.name} {'done' if code == 0 else f'failed (exit {code})'}"
+                      + (f"; {failed} failed so far" if failed else ""))
+
     if len(devices) <= 1:
         for job in jobs:
-            codes[job.name] = run_job(job, job_env(devices[0] if devices else None))
+            finished(job, run_job(job, job_env(devices[0] if devices else None)))
         return codes
     waiting: "queue.Queue[Job]" = queue.Queue()
     for job in jobs:
@@ -56,7 +65,7 @@ def run_local(jobs: List[Job], devices: Optional[List[str]] = None) -> Dict[str,
                 job = waiting.get_nowait()
             except queue.Empty:
                 return
-            codes[job.name] = run_job(job, job_env(device))
+            finished(job, run_job(job, job_env(device)))
 
     threads = [threading.Thread(target=worker, args=(device,), daemon=True) for device in devices]
     for thread in threads:

@@ -1,4 +1,4 @@
-"""`sked-demo`: a real SKED edit of the embedded demo scene, end to end, on the CPU.
+"""`sked-demo`: a real SKED edit of the embedded demo scene, end to end (on the CPU, or a GPU where there is one).
 
 1. writes the demo dataset (an analytic sphere) and fits a tiny nerfacto base to it, or with
    `--base splatfacto` a Gaussian-splat base, saved exactly as `ns-train nerfacto` (`splatfacto`)
@@ -22,10 +22,11 @@ import torch
 
 from sked_ns.demo.scenes import sphere as demo_scene
 from sked_ns.demo.base import build_demo_base
+from sked_ns.demo import BASES
 from sked_ns.method.edit_box import compute_edit_box
 from sked_ns.evaluation.metrics import intersection_over_sketch, psnr_outside
 from sked_ns.evaluation.novel_views import eval_split_views, evaluate_novel_views
-from sked_ns.errors import ArgumentParser, SkedFileExistsError, SkedUserError, check_writable_folder
+from sked_ns.errors import SkedFileExistsError, SkedUserError, check_writable_folder
 from sked_ns.method.preservation import SketchDistanceField
 from sked_ns.run_lock import hold
 from sked_ns.sketches.sketch_set import DataparserTransform, SketchSet, load_sketch_set, save_sketch_set
@@ -94,7 +95,6 @@ def choose_guidance(prompt: Optional[str], model: str) -> str:
     return "reference"
 
 
-BASES = ("nerfacto", "splatfacto")
 
 
 def fit_base(kind: str, data: Path, folder: Path, base_steps: Optional[int], splat_fit=None) -> Path:
@@ -205,25 +205,11 @@ def run(output: Path, beta: float = 0.025, size: int = 128, iterations: int = 10
     return summary
 
 
-def entrypoint() -> None:
-    from sked_ns.compat import quiet_third_party_warnings
+def report(summary: dict) -> str:
+    """What sked-demo prints when it ends."""
     from sked_ns.evaluation.evaluate import novel_summary
 
-    quiet_third_party_warnings()
-    parser = ArgumentParser(prog="sked-demo", description=__doc__.split("\n")[0])
-    parser.add_argument("--output", type=Path, default=Path("demo_output"), help="folder for everything the demo writes")
-    parser.add_argument("--beta", type=float, default=0.025, help="preservation falloff, image widths")
-    parser.add_argument("--size", type=int, default=128, help="size of the rendered images, pixels")
-    parser.add_argument("--iterations", type=int, default=100, help="edit iterations")
-    parser.add_argument("--prompt", default=None, help="text for Stable Diffusion guidance (needs its weights)")
-    parser.add_argument("--diffusion-model", default="CompVis/stable-diffusion-v1-4", help="hub id or local folder")
-    parser.add_argument("--base", choices=BASES, default="nerfacto",
-                        help="the base edited: a tiny nerfacto, or a splatfacto (Gaussian splats) fitted on the CPU")
-    parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
-    args = parser.parse_args()
-    summary = run(args.output, args.beta, args.size, args.iterations, prompt=args.prompt,
-                  diffusion_model=args.diffusion_model, device=args.device, base=args.base)
-    print(
+    return (
         f"\nmean preservation weight on the hat {summary['mean_weight_on_hat']:.3f} (free to change), "
         f"on the sphere {summary['mean_weight_on_sphere']:.3f} (kept)\n"
         f"edit ({summary['guidance']} guidance, {summary['iterations']} iterations): Intersection-over-Sketch "
@@ -234,7 +220,3 @@ def entrypoint() -> None:
         f"{summary['images'][2]} (base | edit | may-change region dimmed, new opacity in magenta)\n"
         f"edited run: {summary['edit_run']}"
     )
-
-
-if __name__ == "__main__":
-    entrypoint()

@@ -312,8 +312,8 @@ def entrypoint(argv: Optional[List[str]] = None) -> None:
         return
     if argv and argv[0] == "import":
         parser = ArgumentParser(prog="sked-sketch import", description="Painted canvases -> sketch set.")
-        parser.add_argument("folder", type=Path)
-        parser.add_argument("--out", type=Path, required=True)
+        parser.add_argument("folder", type=Path, help="the canvases folder (canvases.json and the painted views)")
+        parser.add_argument("--out", type=Path, required=True, help="new folder to save the sketch set into")
         args = parser.parse_args(argv[1:])
         new_sketch_folder(args.out, "sked-sketch import")
         print(f"wrote {import_canvases(args.folder, args.out)}")
@@ -329,11 +329,17 @@ def entrypoint(argv: Optional[List[str]] = None) -> None:
         args = parser.parse_args(argv[1:])
         print(sketch_set_coverage(args.folder).message())
         return
-    parser = ArgumentParser(prog="sked-sketch", description=__doc__.split("\n")[0],
-                            epilog="Subcommands: `canvases`, `import` (headless) and `check` (a set's coverage).")
+    parser = ArgumentParser(
+        prog="sked-sketch", description=__doc__.split("\n")[0],
+        usage="sked-sketch BASE --out FOLDER [--port PORT]      draw in the viewer on the base\n"
+              "       sked-sketch canvases BASE FOLDER --images I [I ...]   canvases to paint over, headless\n"
+              "       sked-sketch import CANVASES --out FOLDER          painted canvases -> a sketch set\n"
+              "       sked-sketch check FOLDER                         do the sketches pin the part down?",
+        epilog="Each subcommand has its own --help.")
     parser.add_argument("base", type=Path, help="base run folder or its config.yml")
     parser.add_argument("--out", type=Path, required=True, help="folder to save the sketch set into (must be new)")
-    parser.add_argument("--port", type=port_number, default=None)
+    parser.add_argument("--port", type=port_number, default=None,
+                        help="the viewer's port (default: nerfstudio's, 7007, or the next free one)")
     args = parser.parse_args(argv)
     new_sketch_folder(args.out, "sked-sketch")
     viewer, _ = start_viewer(args.base, args.out, args.port, device)

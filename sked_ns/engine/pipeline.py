@@ -85,5 +85,5 @@ def refuse_multi_device(world_size: int) -> None:
             "--machine.num-machines). Run with --machine.num-devices 1 --machine.num-machines 1. Two ways scale "
             "instead: a second GPU for the diffusion model (pipeline.model.guidance:stable-diffusion "
             "--pipeline.model.guidance.device cuda:1), and many edits at once, one per GPU, here or as a Slurm job "
-            "array: sked-batch (README, 'Many edits: sked-batch')."
+            "array: sked-batch (docs/batch.md)."
         )

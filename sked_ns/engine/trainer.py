@@ -40,10 +40,19 @@ from sked_ns.method.validation import check_options
 @dataclass
 class SkedTrainerConfig(TrainerConfig):
     _target: Type = field(default_factory=lambda: SkedTrainer)
+    load_dir: Optional[Path] = None
+    """Required: the scene to edit, a trained nerfacto, instant-ngp or splatfacto run (its folder or its
+    nerfstudio_models). An earlier SKED edit here is resumed; with --progressive True its result is edited again."""
+    prompt: Optional[str] = None
+    """What should be in the sketched region (Stable Diffusion guidance). Leave it out to carve the region away."""
     sketches: Optional[Path] = None
     """Alias for --pipeline.model.sketches: the sketch-set folder."""
     progressive: bool = False
     """With --load-dir on an earlier SKED run: edit its result again instead of resuming it."""
+
+    def print_to_terminal(self) -> None:
+        resolve_edit(self)  # a user error before nerfstudio's config dump, not after it
+        super().print_to_terminal()
 
     def save_config(self) -> None:
         resolve_edit(self)  # before saving, so config.yml describes the edit's real model

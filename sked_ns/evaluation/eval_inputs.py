@@ -3,7 +3,6 @@ device, CLIP weights and output paths; and its command line."""
 
 from __future__ import annotations
 
-import argparse
 import json
 from pathlib import Path
 from typing import Optional
@@ -14,6 +13,7 @@ import torch
 from sked_ns.engine.base_scene import resolve_base
 from sked_ns.errors import SkedFileNotFoundError, SkedUserError, check_writable_folder, warn
 from sked_ns.evaluation import novel_views
+from sked_ns.evaluation.eval_args import eval_parser
 from sked_ns.evaluation.clip_score import DEFAULT_CLIP
 from sked_ns.evaluation.metrics import SSIM_MIN_SIDE
 from sked_ns.evaluation.render import resized_mask
@@ -76,17 +76,6 @@ def novel_view_cameras(cameras: Optional[str], target: Optional[Path]) -> str:
                                         "'orbit[:N]' or 'none').")
         check_camera_file("--cameras", Path(cameras), target=False)
     return cameras
-
-
-def positive_int(text: str) -> int:
-    """argparse type: a whole number >= 1 (a size or a count of views)."""
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"{value}: must be at least 1")
-    return value
 
 
 def edit_run_folder(config: Path) -> Path:
@@ -247,33 +236,6 @@ def output_paths(run: Path, output: Optional[Path], sheet: Optional[Path], overw
     check_writable_folder(output.parent, "--output")
     check_writable_folder(sheet.parent, "--sheet")
     return output, sheet
-
-
-def eval_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="sked-eval", description=__doc__.split("\n")[0])
-    parser.add_argument("config", type=Path, help="the edited run's config.yml (or its run folder)")
-    parser.add_argument("--base", type=Path, default=None, help="base run folder (default: the one the edit used)")
-    parser.add_argument("--sketches", type=Path, default=None, help="sketch set (default: the one the edit used)")
-    parser.add_argument("--output", type=Path, default=None,
-                        help="metrics JSON to write (default: sked_eval.json in the edit's run folder)")
-    parser.add_argument("--sheet", type=Path, default=None, help="contact sheet PNG (default: next to --output)")
-    parser.add_argument("--overwrite", action="store_true", help="replace an earlier --output / --sheet")
-    parser.add_argument("--resolution", type=positive_int, default=256)
-    parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
-    parser.add_argument("--prompt", default=None, help="prompt for CLIP similarity (default: the edit's)")
-    parser.add_argument("--clip-model", default=None, help=f"CLIP hub id (cached) or local folder (default {DEFAULT_CLIP})")
-    parser.add_argument("--clip-views", type=positive_int, default=40, help="views around the edit for CLIP similarity")
-    parser.add_argument("--clip-resolution", type=positive_int, default=128, help="render size of those views")
-    parser.add_argument("--cameras", default=None,
-                        help="novel views: 'eval' (the base dataset's eval split; the default), 'orbit[:N]' around the "
-                             "edit box, a camera file in the base's data frame (nerfstudio-data transforms.json, "
-                             "Blender transforms_<split>.json, or their folder), or 'none'")
-    parser.add_argument("--target", type=Path, default=None,
-                        help="ground truth of the intended result (a camera file as for --cameras, with its images): "
-                             "scored at its own cameras (instead of --cameras) inside and outside the changed region")
-    parser.add_argument("--novel-resolution", type=positive_int, default=256, help="longer side of the novel-view renders")
-    parser.add_argument("--max-novel-views", type=positive_int, default=12, help="at most this many novel views (evenly spread)")
-    return parser
 
 
 def check_flags(args) -> None:

@@ -25,12 +25,13 @@ from sked_ns.errors import SkedUserError
 from sked_ns.atomic import publish_atomically, write_text_atomically
 from sked_ns.evaluation import novel_views
 from sked_ns.evaluation.eval_inputs import (check_base, check_device, check_flags, check_sketch_masks, checked_sketches,
-                                            edit_run_folder, edit_scene, eval_parser, is_orbit, novel_view_cameras,
+                                            edit_run_folder, edit_scene, is_orbit, novel_view_cameras,
                                             orbit_count, output_paths)
 from sked_ns.evaluation.metrics import intersection_over_sketch, psnr_outside, ssim_outside
 from sked_ns.evaluation.clip_score import DEFAULT_CLIP, ClipScorer, orbit_cameras
 from sked_ns.sketches.random_views import focal_from_fov
 from sked_ns.evaluation.render import load_pipeline, render_at, render_base_at, render_camera, resized_mask
+from sked_ns.progress import Progress
 from sked_ns.run_lock import writing
 from sked_ns.sketches.cameras import cameras_of
 
@@ -133,6 +134,7 @@ def evaluate(edit_run: Path, base_run: Optional[Path] = None, sketches: Optional
     lpips, lpips_reason = _lpips_or_reason()
 
     views, rows = [], []
+    progress = Progress("sked-eval", "sketch view", len(sketch_set.views))
     for index, view in enumerate(sketch_set.views):
         if base_pipeline is None:
             base = render_base_at(edit_pipeline.model, view, resolution)
@@ -161,6 +163,7 @@ def evaluate(edit_run: Path, base_run: Optional[Path] = None, sketches: Optional
         overlay = after["rgb"].clone()
         overlay[mask] = overlay[mask] * 0.5 + torch.tensor([0.5, 0.0, 0.0])
         rows.append(torch.cat([base["rgb"], after["rgb"], overlay], dim=1))
+        progress.step()
     keys = [key for key in views[0] if key != "view"]
     result = {
         "edit_run": str(edit.run_dir),
@@ -180,7 +183,8 @@ def evaluate(edit_run: Path, base_run: Optional[Path] = None, sketches: Optional
     if cameras != "none":
         views_to_score, source = choose_novel_views(edit_pipeline, cameras, target, novel_resolution, max_novel_views)
         # Against the edit's frozen copy of its base (bit-identical to the base), which knows the sketches.
-        novel = novel_views.evaluate_novel_views(edit_pipeline.model, views_to_score, target=target is not None)
+        novel = novel_views.evaluate_novel_views(edit_pipeline.model, views_to_score, target=target is not None,
+                                                 progress=Progress("sked-eval", "novel view", len(views_to_score)))
         width = rows[0].shape[1]
         rows += [torch.nn.functional.interpolate(row.permute(2, 0, 1)[None], scale_factor=width / row.shape[1],
                                                  mode="bilinear")[0].permute(1, 2, 0) for row in novel.pop("rows")]
@@ -201,14 +205,8 @@ def write_outputs(outcome: dict, output: Path, sheet: Path) -> None:
     write_text_atomically(output, json.dumps(outcome["metrics"], indent=2))
 
 
-def entrypoint() -> None:
-    from sked_ns.compat import quiet_third_party_warnings
-    from sked_ns.errors import show_warnings_as_lines
-
-    quiet_third_party_warnings()
-    show_warnings_as_lines()
-    args = eval_parser().parse_args()
-    # Every input, then the outputs, before anything is written or rendered.
+def main(args) -> None:
+    """sked-eval with parsed arguments: every input, then the outputs, checked before anything is written."""
     run = edit_run_folder(args.config)
     check_flags(args)
     check_device(args.device)
@@ -262,7 +260,3 @@ def novel_summary(novel: Dict) -> str:
             base = mean.get(key + "_base")
             parts.append(f"{label} {mean[key]:.3g}{unit}" + (f" (base {base:.3g}{unit})" if base is not None else ""))
     return " ".join(parts[:1]) + " " + ", ".join(parts[1:])
-
-
-if __name__ == "__main__":
-    entrypoint()

@@ -353,8 +353,10 @@ def sheet_row(scored: Dict) -> Tensor:
     return torch.cat([base["rgb"], edit["rgb"], overlay], dim=1)
 
 
-def evaluate_novel_views(model, views: List[NovelView], target: bool = False, sheet_rows: int = 4) -> Dict:
-    """Per-view figures, their means, and contact-sheet rows for the first `sheet_rows` views."""
+def evaluate_novel_views(model, views: List[NovelView], target: bool = False, sheet_rows: int = 4,
+                         progress=None) -> Dict:
+    """Per-view figures, their means, and contact-sheet rows for the first `sheet_rows` views; `progress` (a
+    sked_ns.progress.Progress) hears of each view scored."""
     entries, rows = [], []
     for index, view in enumerate(views):
         scored = score_view(model, view)
@@ -363,6 +365,8 @@ def evaluate_novel_views(model, views: List[NovelView], target: bool = False, sh
         entries.append(scored["entry"])
         if index < sheet_rows:
             rows.append(sheet_row(scored))
+        if progress is not None:
+            progress.step()
     keys = sorted({key for entry in entries for key in entry if key != "view"})
     mean = {key: float(np.mean([e[key] for e in entries if key in e])) for key in keys}
     return {"views": entries, "mean": mean, "keep_threshold": KEEP_THRESHOLD, "rows": rows}

@@ -70,7 +70,7 @@ class SkedOptions:
     """Weight of L_new (losses.new_mass_loss; NeRF bases): the opacity the edit adds over the base near the sketches,
     counted only where every sketch ray through a point already holds more than 0.9 of new opacity (or off the
     sketches: hull_carving.SketchRayOpacity), so a two-view visual hull is carved once filled, not before the part
-    forms. 0 (default): the paper's losses; measured only on `marker` so far (README, Edit quality)."""
+    forms. 0 (default): the paper's losses; measured only on `marker` so far (docs/benchmarks.md, Edit quality)."""
     lambda_carve: float = 5.0
     """Weight of the carving loss (empty the sketched region) when there is no prompt."""
     occupancy_threshold: float = 5.0

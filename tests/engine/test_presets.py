@@ -159,6 +159,8 @@ def test_ns_train_sked_help_says_what_and_why_not_figures(method):
     assert result.returncode == 0, result.stderr[-2000:]
     text = result.stdout
     assert "--pipeline.model.lambda-pres" in text and "--pipeline.model.num-seeds" in text
+    flat = " ".join(re.sub(r"[│╭╮╰╯─]", " ", text).split())
+    assert "Required: the scene to edit" in flat and "Leave it out to carve the region away" in flat
     assert re.findall(HASH, text) == []
     assert [m.group(0) for m in re.finditer(DB_FIGURE, text)] == []
     assert re.findall(r"\bissue \d+|\(#\d+\)", text) == []

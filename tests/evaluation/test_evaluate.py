@@ -12,7 +12,8 @@ import pytest
 import torch
 
 from sked_ns.errors import SkedFileNotFoundError, SkedUserError
-from sked_ns.evaluation.eval_inputs import edit_run_folder, orbit_count, output_paths, positive_int
+from sked_ns.evaluation.eval_args import positive_int
+from sked_ns.evaluation.eval_inputs import edit_run_folder, orbit_count, output_paths
 
 
 def test_results_go_next_to_the_edit_and_never_replace_an_earlier_one(tmp_path):
@@ -46,12 +47,12 @@ def test_sizes_and_counts_must_be_positive_whole_numbers(text):
 
 
 def test_the_command_refuses_before_loading_anything(tmp_path, monkeypatch, capsys):
-    from sked_ns.evaluation.evaluate import entrypoint
+    from sked_ns.errors import SkedUserError
+    from sked_ns.evaluation.eval_cli import entrypoint
 
     monkeypatch.setattr(sys, "argv", ["sked-eval", str(tmp_path / "nowhere"), "--resolution", "0"])
-    with pytest.raises(SystemExit):
+    with pytest.raises(SkedUserError, match="sked-eval: argument --resolution: 0: must be at least 1"):
         entrypoint()
-    assert "--resolution: 0: must be at least 1" in capsys.readouterr().err
     monkeypatch.setattr(sys, "argv", ["sked-eval", str(tmp_path / "nowhere")])
     with pytest.raises(SkedFileNotFoundError, match="sked-eval .*nowhere"):
         entrypoint()
@@ -77,7 +78,7 @@ def fake_run(tmp_path):
 
 
 def sked_eval(monkeypatch, *argv):
-    from sked_ns.evaluation.evaluate import entrypoint
+    from sked_ns.evaluation.eval_cli import entrypoint
 
     monkeypatch.setattr(sys, "argv", ["sked-eval", *map(str, argv)])
     entrypoint()

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import shutil
 import subprocess
 import sys
@@ -27,6 +28,7 @@ def test_ns_train_sked_prints_a_user_error_without_traceback(tmp_path):
     assert result.returncode != 0
     assert f"error: --load-dir {missing}: no such file or folder." in result.stderr, result.stderr[-3000:]
     assert "Traceback" not in result.stderr + result.stdout, result.stderr[-3000:]
+    assert "TrainerConfig" not in result.stdout, "the error comes before nerfstudio's config dump"
     assert not (tmp_path / "out").exists()  # refused before anything was written
 
 
@@ -206,3 +208,26 @@ def test_a_library_failure_reading_a_users_file_is_a_user_error(tmp_path):
     with pytest.raises(ZeroDivisionError):  # not a reading failure: a bug keeps its traceback
         with errors.reading("--data x", "Check it."):
             1 / 0
+
+
+SKED_COMMANDS = ["sked-eval", "sked-sketch", "sked-batch", "sked-demo", "sked-import-authors"]
+
+
+@pytest.mark.parametrize("command", SKED_COMMANDS)
+def test_sked_commands_print_help_without_warnings_and_with_every_flag_explained(command):
+    program = shutil.which(command, path=str(Path(sys.executable).parent))
+    result = subprocess.run([program, "--help"], capture_output=True, text=True, timeout=300)
+    assert result.returncode == 0 and result.stdout.startswith("usage: "), result.stderr[-2000:]
+    assert "Warning" not in result.stderr, result.stderr[-2000:]
+    lines = result.stdout.splitlines()
+    options = [i for i, line in enumerate(lines) if re.match(r"^  -", line)]
+    unexplained = [lines[i].strip() for i in options
+                   if not re.search(r"\S\s{2,}\S", lines[i].strip()) and not (i + 1 < len(lines) and
+                                                                        lines[i + 1].startswith(" " * 8))]
+    assert unexplained == []
+
+
+def test_sked_sketch_usage_names_its_subcommands():
+    program = shutil.which("sked-sketch", path=str(Path(sys.executable).parent))
+    usage = subprocess.run([program, "--help"], capture_output=True, text=True, timeout=300).stdout.split("\n\n")[0]
+    assert all(f"sked-sketch {sub}" in usage for sub in ("canvases", "import", "check"))

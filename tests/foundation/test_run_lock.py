@@ -194,7 +194,7 @@ def test_a_checkpoint_another_writer_broke_says_so(tmp_path, monkeypatch):
 
 
 def test_sked_eval_leaves_outputs_another_sked_eval_writes(tmp_path, monkeypatch):
-    from sked_ns.evaluation import evaluate
+    from sked_ns.evaluation import eval_cli, evaluate
 
     run = tmp_path / "run"
     run.mkdir()
@@ -209,7 +209,7 @@ def test_sked_eval_leaves_outputs_another_sked_eval_writes(tmp_path, monkeypatch
     try:
         with pytest.raises(run_lock.WriterBusy, match=rf"sked_eval\.json: another process is writing to it \(pid "
                                                       rf"{other.pid} .*pass another --output"):
-            evaluate.entrypoint()
+            eval_cli.entrypoint()
     finally:
         killed(other)
     assert not (run / "sked_eval.json").exists()

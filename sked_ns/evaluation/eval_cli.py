@@ -1,0 +1,33 @@
+"""`sked-eval`'s command line, parsed before the renderers are imported (so --help is quick and quiet).
+
+The paper's protocol on an edited run's sketch views, and the same edit from other views (evaluate.py).
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from typing import List, Optional
+
+from sked_ns.evaluation.eval_args import eval_parser
+
+
+def parse(argv: Optional[List[str]] = None) -> argparse.Namespace:
+    args = eval_parser().parse_args(sys.argv[1:] if argv is None else argv)
+    if args.device is None:
+        import torch
+
+        args.device = "cuda" if torch.cuda.is_available() else "cpu"
+    return args
+
+
+def entrypoint(argv: Optional[List[str]] = None) -> None:
+    from sked_ns.compat import quiet_third_party_warnings
+    from sked_ns.errors import show_warnings_as_lines
+
+    quiet_third_party_warnings()  # before nerfstudio is imported: its import warns
+    show_warnings_as_lines()
+    args = parse(argv)
+    from sked_ns.evaluation.evaluate import main
+
+    main(args)

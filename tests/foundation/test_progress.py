@@ -1,0 +1,24 @@
+"""Progress lines: how far, how long, what is left."""
+
+from __future__ import annotations
+
+import io
+
+from sked_ns.progress import Progress
+
+
+def test_a_line_says_how_far_how_long_and_what_is_left():
+    progress = Progress("sked-eval", "novel view", 4)
+    assert progress.line(1, 10.0) == "sked-eval: novel view 1/4 (10 s, about 30 s left)"
+    assert progress.line(4, 200.0) == "sked-eval: novel view 4/4 (3 min)"
+    assert progress.line(2, 7200.0, ": a done") == "sked-eval: novel view 2/4 (2.0 h, about 2.0 h left): a done"
+
+
+def test_each_step_is_one_line_on_its_stream():
+    stream = io.StringIO()
+    progress = Progress("sked-batch", "edits", 2, stream=stream)
+    progress.step(": first done")
+    progress.step()
+    lines = stream.getvalue().splitlines()
+    assert len(lines) == 2 and lines[0].startswith("sked-batch: edits 1/2 (") and lines[0].endswith(": first done")
+    assert lines[1].startswith("sked-batch: edits 2/2 (") and "left" not in lines[1]
