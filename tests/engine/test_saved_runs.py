@@ -96,6 +96,8 @@ def test_a_v0_3_edit_resumes(runs):
         capture_output=True, text=True, timeout=900, cwd=runs,
     )
     assert result.returncode == 0, result.stderr[-3000:]
-    assert (run / "nerfstudio_models" / "step-000000002.ckpt").exists()
-    saved = yaml.load((run / "config.yml").read_text(), Loader=yaml.Loader)
+    # A resume writes a new run folder beside the interrupted one (ns-train's timestamp), from its checkpoint on.
+    resumed = [path.parents[1] for path in (run.parent).glob("*/nerfstudio_models/step-000000002.ckpt")]
+    assert len(resumed) == 1 and resumed[0] != run, sorted(str(p.relative_to(runs)) for p in runs.rglob("*.ckpt"))
+    saved = yaml.load((resumed[0] / "config.yml").read_text(), Loader=yaml.Loader)
     assert saved.max_num_iterations == 3 and saved.load_dir is None
