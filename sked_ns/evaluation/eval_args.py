@@ -28,7 +28,10 @@ def eval_parser() -> argparse.ArgumentParser:
                                         "LPIPS outside the sketches, CLIP similarity) and novel views (what it "
                                         "keeps, where it leaks, and against --target). Writes a JSON and a "
                                         "contact sheet.")
-    parser.add_argument("config", type=Path, help="the edited run's config.yml (or its run folder)")
+    parser.add_argument("config", type=Path, nargs="?", default=None,
+                        help="the edited run's config.yml (or its run folder)")
+    parser.add_argument("--load-config", type=Path, default=None,
+                        help="the same, as nerfstudio's ns-eval / ns-render take it")
     parser.add_argument("--base", type=Path, default=None, help="base run folder (default: the one the edit used)")
     parser.add_argument("--sketches", type=Path, default=None, help="sketch set (default: the one the edit used)")
     parser.add_argument("--output", type=Path, default=None,

@@ -13,7 +13,11 @@ from sked_ns.evaluation.eval_args import eval_parser
 
 
 def parse(argv: Optional[List[str]] = None) -> argparse.Namespace:
-    args = eval_parser().parse_args(sys.argv[1:] if argv is None else argv)
+    parser = eval_parser()
+    args = parser.parse_args(sys.argv[1:] if argv is None else argv)
+    if (args.config is None) == (args.load_config is None):
+        parser.error("give the edited run once: its config.yml (or run folder), or --load-config config.yml")
+    args.config = args.config if args.config is not None else args.load_config
     if args.device is None:
         import torch
 

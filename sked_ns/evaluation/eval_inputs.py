@@ -262,6 +262,8 @@ def check_eval_flags(flags) -> None:
 
     parser.error = refuse
     args = parser.parse_args(["<the job's run>/config.yml", *flags])
+    if args.load_config is not None:
+        raise SkedUserError("--load-config is not for a plan's eval flags: each job evaluates its own run.")
     for flag in ("output", "sheet"):
         if getattr(args, flag) is not None:
             raise SkedUserError(f"--{flag} is not for a plan's eval flags: the report reads sked_eval.json and "

@@ -190,3 +190,18 @@ def copy_base_architecture(target: SkedOptions, base_model_config) -> None:
             setattr(target, name, copy.deepcopy(getattr(base_model_config, name)))
     cameras = getattr(base_model_config, "camera_optimizer", None)
     target.base_camera_optimizer = getattr(cameras, "mode", "off") if cameras is not None else "off"
+
+
+def taken_from_the_base(config_class: type, base_class: type) -> None:
+    """Hide from `ns-train sked --help` and its parser the fields the edit copies from the base's config
+    (`copy_base_architecture`): typed, they would be overwritten without a word. Marks them tyro.conf.Suppress in
+    the class's annotations, which only the command line reads (config.yml and the dataclass stay as they are)."""
+    from typing import Annotated, get_type_hints
+
+    import tyro
+
+    hints = get_type_hints(base_class, include_extras=True)
+    owned = config_class.EDIT_OWNED | {option.name for option in fields(SkedOptions)}
+    for base_field in fields(base_class):
+        if base_field.name not in owned and not base_field.name.startswith("_") and base_field.name in hints:
+            config_class.__annotations__[base_field.name] = Annotated[hints[base_field.name], tyro.conf.Suppress]

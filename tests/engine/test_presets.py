@@ -161,6 +161,8 @@ def test_ns_train_sked_help_says_what_and_why_not_figures(method):
     assert "--pipeline.model.lambda-pres" in text and "--pipeline.model.num-seeds" in text
     flat = " ".join(re.sub(r"[│╭╮╰╯─]", " ", text).split())
     assert "Required: the scene to edit" in flat and "Leave it out to carve the region away" in flat
+    # The base's architecture is copied from its config.yml: typed, it would be overwritten, so it is not offered.
+    assert "--pipeline.model.hidden-dim" not in text and "--pipeline.model.num-nerf-samples-per-ray" not in text
     assert re.findall(HASH, text) == []
     assert [m.group(0) for m in re.finditer(DB_FIGURE, text)] == []
     assert re.findall(r"\bissue \d+|\(#\d+\)", text) == []

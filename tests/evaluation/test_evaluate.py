@@ -175,3 +175,15 @@ def test_only_a_sked_edit_is_evaluated_and_not_against_itself(scene, tiny_edit):
         evaluate(scene["base"], cameras="none")
     with pytest.raises(SkedUserError, match=r"--base \S+: that is the edit itself"):
         evaluate(tiny_edit, base_run=tiny_edit, cameras="none")
+
+
+def test_the_edit_is_named_once_as_a_path_or_as_nerfstudio_s_load_config(tmp_path):
+    from sked_ns.errors import SkedUserError
+    from sked_ns.evaluation.eval_cli import parse
+
+    run = tmp_path / "run" / "config.yml"
+    assert parse([str(run), "--device", "cpu"]).config == run
+    assert parse(["--load-config", str(run), "--device", "cpu"]).config == run
+    for argv in ([], [str(run), "--load-config", str(run)]):
+        with pytest.raises(SkedUserError, match="give the edited run once"):
+            parse(argv)

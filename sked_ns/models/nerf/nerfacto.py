@@ -20,6 +20,7 @@ from sked_ns.models.nerf.field_edit import SkedMixin
 from sked_ns.method.options import (  # noqa: F401  (re-exported: the public names of the edit model)
     SkedOptions,
     SkedSettingsWarning,
+    taken_from_the_base,
     warn_degenerate_settings,
     without_lpips as _without_lpips,
 )
@@ -47,6 +48,9 @@ class SkedNerfactoModelConfig(NerfactoModelConfig, SkedOptions):
     camera_optimizer: CameraOptimizerConfig = field(default_factory=lambda: CameraOptimizerConfig(mode="off"))
     """Edits keep the base's cameras."""
 
+
+
+taken_from_the_base(SkedNerfactoModelConfig, NerfactoModelConfig)  # the base's architecture: not typeable
 
 class SkedNerfactoModel(SkedMixin, NerfactoModel):
     """Editable nerfacto field + frozen base + sketch geometry + guidance."""

@@ -25,7 +25,7 @@ from sked_ns.method.edit_box import occupancy_grid_mask
 from sked_ns.models.nerf.nerfacc_backend import install_lazy_backend
 from sked_ns.models.nerf.occupancy import PortableOccGridEstimator, render_weights
 from sked_ns.models.nerf.field_edit import SkedMixin
-from sked_ns.method.options import SkedOptions, without_lpips
+from sked_ns.method.options import SkedOptions, taken_from_the_base, without_lpips
 from sked_ns.method.preservation import check_beta
 
 
@@ -47,6 +47,9 @@ class SkedNGPModelConfig(InstantNGPModelConfig, SkedOptions):
     grid_update_interval: int = 16
     """Iterations between occupancy-grid updates (instant-ngp: 16)."""
 
+
+
+taken_from_the_base(SkedNGPModelConfig, InstantNGPModelConfig)  # the base's architecture: not typeable
 
 class SkedNGPModel(SkedMixin, NGPModel):
     """Editable NGP field and occupancy grid + frozen base + sketch geometry + guidance."""

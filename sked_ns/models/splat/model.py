@@ -41,7 +41,7 @@ from sked_ns.sketches.cameras import viewmat
 from sked_ns.method.frozen_base import read_model_state
 from sked_ns.method.edit import SkedEdit, StepTerms
 from sked_ns.errors import SkedUserError
-from sked_ns.method.options import SkedOptions, is_carving
+from sked_ns.method.options import SkedOptions, is_carving, taken_from_the_base
 from sked_ns.method.preservation import check_beta
 from sked_ns.models.splat.densify import EditableRefinement
 from sked_ns.models.splat.gaussians import (GAUSSIAN_PARAMS, GaussianSet, base_gaussians, gaussian_colours,
@@ -80,6 +80,9 @@ class SkedSplatModelConfig(SplatfactoModelConfig, SkedOptions):
     camera_optimizer: CameraOptimizerConfig = field(default_factory=lambda: CameraOptimizerConfig(mode="off"))
     """Edits keep the base's cameras."""
 
+
+
+taken_from_the_base(SkedSplatModelConfig, SplatfactoModelConfig)  # the base's architecture: not typeable
 
 class SkedSplatModel(EditableRefinement, SplatPhotoAnchor, SkedEdit, SplatfactoModel):
     """Kept Gaussians (buffers) + editable Gaussians (splatfacto's parameters) + frozen base + sketches + guidance."""
