@@ -183,7 +183,7 @@ def edit(base: Path, paths: Dict[str, Path], scene: str, protocol: Dict, output:
 
 def score(edit_run: Path, paths: Dict[str, Path], output: Path, log: Path) -> Dict:
     # A rerun of a tag replaces its evaluation (sked-eval never does unasked).
-    run([sys.executable, "-m", "sked_ns.evaluation.evaluate", str(edit_run), "--output", str(output), "--overwrite",
+    run([sys.executable, "-m", "sked_ns.evaluation.eval_cli", str(edit_run), "--output", str(output), "--overwrite",
          "--resolution", "64", "--target", str(paths["target"]), "--novel-resolution", "96"], log)
     return json.loads(output.read_text())
 

@@ -42,3 +42,7 @@ def entrypoint(argv: Optional[List[str]] = None) -> None:
     summary = run(args.output, args.beta, args.size, args.iterations, prompt=args.prompt,
                   diffusion_model=args.diffusion_model, device=device, base=args.base)
     print(report(summary))
+
+
+if __name__ == "__main__":
+    entrypoint()

@@ -35,3 +35,7 @@ def entrypoint(argv: Optional[List[str]] = None) -> None:
     from sked_ns.evaluation.evaluate import main
 
     main(args)
+
+
+if __name__ == "__main__":
+    entrypoint()

@@ -269,9 +269,8 @@ def test_tcnn_base_without_tcnn_is_explained(scene, tmp_path):
     state["pipeline"]["_model.field.mlp_base.tcnn_encoding.params"] = torch.zeros(10)
     torch.save(state, path)
     config = edit_config(run, scene["data"], scene["sketches"], tmp_path / "out", iterations=2)
-    resolve_edit(config)
-    with pytest.raises(ValueError, match="tiny-cuda-nn.*Install tinycudann"):
-        config.pipeline.setup(device="cpu", test_mode="val")
+    with pytest.raises(SkedUserError, match="tiny-cuda-nn.*Install tinycudann"):
+        resolve_edit(config)  # from the checkpoint's layout, before anything is written
 
 
 def test_missing_sketches_and_bad_beta(scene, tmp_path):
@@ -374,7 +373,7 @@ def test_sked_eval_reports_the_paper_metrics(scene, edited, tmp_path):
 
     output = tmp_path / "eval.json"
     result = subprocess.run(
-        [sys.executable, "-m", "sked_ns.evaluation.evaluate", str(edited["run"] / "config.yml"), "--output", str(output),
+        [sys.executable, "-m", "sked_ns.evaluation.eval_cli", str(edited["run"] / "config.yml"), "--output", str(output),
          "--resolution", "48", "--novel-resolution", "24", "--max-novel-views", "2"], capture_output=True, text=True, timeout=600,
     )
     assert result.returncode == 0, result.stderr[-3000:]
