@@ -99,6 +99,9 @@ class StableDiffusionGuidanceConfig(GuidanceConfig):
     """fp16 weights on CUDA (always fp32 on the CPU)."""
     compile: bool = True
     """torch.compile the UNet and VAE encoder on CUDA."""
+    vae_checkpointing: bool = False
+    """Recompute the VAE encoder's activations during the backward pass instead of keeping them from the forward:
+    less memory for the encode's backward (the largest activations of the SD side at 512 px), more time."""
     weight: float = 1.0
     """Multiplier of L_SDS."""
     device: Optional[str] = None
@@ -302,6 +305,8 @@ class StableDiffusionGuidance(Guidance):
         self.vae = vae.to(self.device)
         for module in (self.unet, self.vae):
             module.requires_grad_(False)
+        if self.config.vae_checkpointing:
+            self.vae.enable_gradient_checkpointing()  # same gradients (a test checks), activations recomputed
         self._unet_forward = self.unet.forward
         self._encode = self._posterior
         if self.config.compile and self.device.type == "cuda":

@@ -429,3 +429,19 @@ def test_a_missing_local_folder_is_not_taken_for_a_hub_id(tmp_path, monkeypatch,
 def test_a_hub_id_is_still_a_hub_id(tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
     StableDiffusionGuidanceConfig(model="CompVis/stable-diffusion-v1-4").check()
+
+
+def test_vae_checkpointing_gives_the_same_gradients_through_the_encoder(tiny_sd):
+    """--pipeline.model.guidance.vae-checkpointing recomputes the encoder's activations in the backward pass: the
+    render's gradient must not change (same noise draw)."""
+    grads = []
+    for checkpointing in (False, True):
+        guidance = _guidance(tiny_sd, vae_checkpointing=checkpointing)
+        guidance.prepare("a red hat", "cpu", {})
+        assert guidance.vae.encoder.gradient_checkpointing is checkpointing
+        image = torch.rand(1, 3, 32, 32, generator=torch.Generator().manual_seed(0)).requires_grad_()
+        torch.manual_seed(1)
+        guidance.encode(image).square().sum().backward()
+        grads.append(image.grad)
+    assert grads[0].abs().max() > 0
+    torch.testing.assert_close(grads[1], grads[0], rtol=1e-5, atol=1e-7)
