@@ -38,14 +38,14 @@ CPU_PREVIEW_WIDTH = 160
 backdrop to click on (the mask keeps VIEW_WIDTH), and it costs about 1/10 of the rays."""
 
 
-def _load(run: Path, device: str):
+def _load(run: Path, device: str, flag: str = "sked-sketch"):
     """(config, pipeline, dataparser transform) of a base run, with a clear error if it does not load."""
     from sked_ns.evaluation.render import load_pipeline
 
     run = run.parent if run.name == "config.yml" else run
     with reading(f"sked-sketch: the base {run}", "Point at a trained run's folder or its config.yml, with the data "
                  "it was trained on where its config.yml says."):
-        pipeline = load_pipeline(run, device)
+        pipeline = load_pipeline(run, device, flag=flag)
     from sked_ns.sketches.data_frame import data_frame_transform
 
     outputs = pipeline.datamanager.train_dataparser_outputs
@@ -230,14 +230,14 @@ class SketchPanel:
         self._set_drawing(False)
 
 
-def start_viewer(run: Path, out: Path, port: Optional[int] = None, device: str = "cpu"):
+def start_viewer(run: Path, out: Path, port: Optional[int] = None, device: str = "cpu", flag: str = "sked-sketch"):
     """nerfstudio's viewer on the base with the SKED panel; returns (viewer state, panel)."""
     from nerfstudio.viewer.viewer import Viewer as ViewerState
 
     from sked_ns.engine.base_scene import resolve_base
 
-    run, pipeline, transform = _load(run, device)
-    viewer_config = resolve_base(run).config.viewer
+    run, pipeline, transform = _load(run, device, flag)
+    viewer_config = resolve_base(run, flag=flag).config.viewer
     if port is not None:
         viewer_config.websocket_port = port
     lock = threading.Lock()
@@ -331,18 +331,23 @@ def entrypoint(argv: Optional[List[str]] = None) -> None:
         return
     parser = ArgumentParser(
         prog="sked-sketch", description=__doc__.split("\n")[0],
-        usage="sked-sketch BASE --out FOLDER [--port PORT]      draw in the viewer on the base\n"
+        usage="sked-sketch BASE --out FOLDER [--port PORT]      draw in the viewer on the base (or --load-config)\n"
               "       sked-sketch canvases BASE FOLDER --images I [I ...]   canvases to paint over, headless\n"
               "       sked-sketch import CANVASES --out FOLDER          painted canvases -> a sketch set\n"
               "       sked-sketch check FOLDER                         do the sketches pin the part down?",
         epilog="Each subcommand has its own --help.")
-    parser.add_argument("base", type=Path, help="base run folder or its config.yml")
+    parser.add_argument("base", type=Path, nargs="?", default=None, help="base run folder or its config.yml")
+    parser.add_argument("--load-config", type=Path, default=None, help="the base's config.yml, as ns-viewer takes it")
     parser.add_argument("--out", type=Path, required=True, help="folder to save the sketch set into (must be new)")
     parser.add_argument("--port", type=port_number, default=None,
                         help="the viewer's port (default: nerfstudio's, 7007, or the next free one)")
     args = parser.parse_args(argv)
+    if (args.base is None) == (args.load_config is None):
+        parser.error("give the base once: its run folder (or config.yml), or --load-config config.yml")
+    flag = "sked-sketch" if args.base is not None else "--load-config"
+    args.base = args.base if args.base is not None else args.load_config
     new_sketch_folder(args.out, "sked-sketch")
-    viewer, _ = start_viewer(args.base, args.out, args.port, device)
+    viewer, _ = start_viewer(args.base, args.out, args.port, device, flag)
     print(f"SKED sketching: open {viewer.viewer_info[0] if viewer.viewer_info else 'the viewer'} in a browser.")
     try:
         while True:

@@ -78,12 +78,13 @@ def resized_mask(view: SketchView, resolution: int) -> torch.Tensor:
     return sketch_view_at(view, resolution)[1]
 
 
-def load_pipeline(run_dir: Path, device: str = "cpu"):
-    """A trained run's pipeline (any method, SKED included) with its latest weights, for rendering."""
+def load_pipeline(run_dir: Path, device: str = "cpu", flag: str = "--load-dir"):
+    """A trained run's pipeline (any method, SKED included) with its latest weights, for rendering; `flag`: how the
+    user named the run, for the error if it is not one."""
     from sked_ns.engine.base_scene import resolve_base
     from sked_ns.method.options import without_lpips
 
-    run = resolve_base(run_dir)
+    run = resolve_base(run_dir, flag=flag)
     if run.family == "instant-ngp" and not device.startswith("cuda"):
         raise SkedUserError(
             f"{run.run_dir / 'config.yml'}: nerfstudio renders instant-ngp runs with nerfacc's CUDA kernels only. "

@@ -110,6 +110,19 @@ def test_sked_sketch_on_a_folder_that_is_not_a_run(tmp_path):
     assert result.returncode != 0 and "config.yml" in result.stderr
 
 
+def test_sked_sketch_takes_the_base_once_as_a_folder_or_as_load_config(tmp_path):
+    from sked_ns.drawing.sketch_viewer import entrypoint
+    from sked_ns.errors import SkedUserError
+
+    for argv in (["--out", str(tmp_path / "s")], [str(tmp_path), "--load-config", str(tmp_path / "c.yml"), "--out",
+                                                   str(tmp_path / "s")]):
+        with pytest.raises(SkedUserError, match="give the base once"):
+            entrypoint(argv)
+    with pytest.raises(SkedUserError, match="--load-config .*nowhere: no such file"):  # named as typed
+        entrypoint(["--load-config", str(tmp_path / "nowhere" / "config.yml"), "--out", str(tmp_path / "s")])
+    assert not (tmp_path / "s").exists()
+
+
 def test_steering_controls_change_what_the_viewer_shows(scene, tmp_path):
     from sked_ns.engine.edit_run import edit_config
     from sked_ns.evaluation.render import render_at, render_base_at
