@@ -18,8 +18,7 @@ class Progress:
         self._lock = threading.Lock()  # sked-batch finishes jobs from several threads
 
     def line(self, done: int, elapsed: float, note: str = "") -> str:
-        left = elapsed / done * (self.total - done) if 0 < done < self.total else 0.0
-        eta = f", about {_duration(left)} left" if done < self.total and done > 0 else ""
+        eta = f", about {_duration(elapsed / done * (self.total - done))} left" if 0 < done < self.total else ""
         return f"{self.command}: {self.what} {done}/{self.total} ({_duration(elapsed)}{eta}){note}"
 
     def step(self, note: str = "") -> None:

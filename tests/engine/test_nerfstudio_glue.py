@@ -113,17 +113,14 @@ def test_multi_device_is_refused_naming_the_flag_and_the_ways_that_scale():
 
 # ---- nerfstudio 1.1.5's loop ------------------------------------------------------------------
 
-def test_resumed_edit_runs_exactly_to_its_total():
+def test_resumed_edit_runs_exactly_to_its_total(monkeypatch):
     """nerfstudio 1.1.5 runs max_num_iterations more steps after a resume; an edit's length is its total."""
     trainer = SkedTrainer.__new__(SkedTrainer)
     trainer.config, trainer._start_step = types.SimpleNamespace(max_num_iterations=25), 21
     seen = []
-    original = Trainer.train
-    try:
-        Trainer.train = lambda self: seen.extend(range(self._start_step, self._start_step + self.config.max_num_iterations))
-        trainer.train()
-    finally:
-        Trainer.train = original
+    monkeypatch.setattr(Trainer, "train", lambda self: seen.extend(
+        range(self._start_step, self._start_step + self.config.max_num_iterations)))  # 1.1.5's loop
+    trainer.train()
     assert seen == [21, 22, 23, 24]
 
 

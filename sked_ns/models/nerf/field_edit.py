@@ -39,6 +39,17 @@ from sked_ns.method.options import (  # noqa: F401  (re-exported: their home was
 from sked_ns.method.photo_anchor import anchor_rays, correct_poses, rays_away_from_edit
 
 
+NERF_EDIT_OWNED = SkedOptions.EDIT_OWNED | {
+    # the edit's own losses
+    "loss_coefficients", "interlevel_loss_mult", "distortion_loss_mult", "orientation_loss_mult", "pred_normal_loss_mult",
+    # schedules of training from scratch: an edit starts from trained proposals (its anneal stays 1)
+    "proposal_update_every", "proposal_warmup", "use_proposal_weight_anneal", "proposal_weights_anneal_slope",
+    "proposal_weights_anneal_max_num_iters",
+    "edit_box_density", "grid_update_interval",  # SKED's sampling of the edit box
+}
+"""The model-config fields a NeRF edit decides, not its base (nerfacto and instant-ngp alike)."""
+
+
 def per_ray_sum(values: Tensor, accumulation: Tensor, ray_indices: Optional[Tensor] = None) -> Tensor:
     """Sum per-sample values (..., samples, 1) over each ray, shaped as `accumulation`; `ray_indices` for packed
     samples (occupancy grids)."""

@@ -16,7 +16,7 @@ from nerfstudio.models.nerfacto import NerfactoModel, NerfactoModelConfig
 from torch import Tensor
 from torch.nn import Parameter
 
-from sked_ns.models.nerf.field_edit import SkedMixin
+from sked_ns.models.nerf.field_edit import NERF_EDIT_OWNED, SkedMixin
 from sked_ns.method.options import (  # noqa: F401  (re-exported: the public names of the edit model)
     SkedOptions,
     SkedSettingsWarning,
@@ -31,15 +31,7 @@ from sked_ns.method.preservation import check_beta
 class SkedNerfactoModelConfig(NerfactoModelConfig, SkedOptions):
     """SKED on a nerfacto-style field. Architecture fields are copied from the base (options.copy_base_architecture)."""
 
-    EDIT_OWNED = SkedOptions.EDIT_OWNED | {
-        # the edit's own losses
-        "loss_coefficients", "interlevel_loss_mult", "distortion_loss_mult", "orientation_loss_mult",
-        "pred_normal_loss_mult",
-        # schedules of training from scratch: an edit starts from trained proposals (its anneal stays 1)
-        "proposal_update_every", "proposal_warmup", "use_proposal_weight_anneal", "proposal_weights_anneal_slope",
-        "proposal_weights_anneal_max_num_iters",
-        "edit_box_density", "grid_update_interval",  # SKED's sampling of the edit box
-    }
+    EDIT_OWNED = NERF_EDIT_OWNED
 
     _target: Type = field(default_factory=lambda: SkedNerfactoModel)
     edit_box_density: float = 2.0

@@ -24,7 +24,7 @@ from torch.nn import Parameter
 from sked_ns.method.edit_box import occupancy_grid_mask
 from sked_ns.models.nerf.nerfacc_backend import install_lazy_backend
 from sked_ns.models.nerf.occupancy import PortableOccGridEstimator, render_weights
-from sked_ns.models.nerf.field_edit import SkedMixin
+from sked_ns.models.nerf.field_edit import NERF_EDIT_OWNED, SkedMixin
 from sked_ns.method.options import SkedOptions, taken_from_the_base, without_lpips
 from sked_ns.method.preservation import check_beta
 
@@ -33,15 +33,7 @@ from sked_ns.method.preservation import check_beta
 class SkedNGPModelConfig(InstantNGPModelConfig, SkedOptions):
     """SKED on an instant-ngp field. Architecture fields are copied from the base (options.copy_base_architecture)."""
 
-    EDIT_OWNED = SkedOptions.EDIT_OWNED | {
-        # the edit's own losses
-        "loss_coefficients", "interlevel_loss_mult", "distortion_loss_mult", "orientation_loss_mult",
-        "pred_normal_loss_mult",
-        # schedules of training from scratch: an edit starts from trained proposals (its anneal stays 1)
-        "proposal_update_every", "proposal_warmup", "use_proposal_weight_anneal", "proposal_weights_anneal_slope",
-        "proposal_weights_anneal_max_num_iters",
-        "edit_box_density", "grid_update_interval",  # SKED's sampling of the edit box
-    }
+    EDIT_OWNED = NERF_EDIT_OWNED
 
     _target: Type = field(default_factory=lambda: SkedNGPModel)
     grid_update_interval: int = 16
