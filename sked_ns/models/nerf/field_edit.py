@@ -23,6 +23,7 @@ from nerfstudio.field_components.field_heads import FieldHeadNames
 from torch import Tensor
 
 from sked_ns.method.frozen_base import read_model_state, uses_tcnn
+from sked_ns.models.nerf.chunked import chunked
 from sked_ns.models.nerf.colour_residual import ColourResidual
 from sked_ns.method.edit import SkedEdit, StepTerms
 from sked_ns.errors import SkedUserError
@@ -183,6 +184,11 @@ class SkedMixin(SkedEdit):
         preserved = per_ray_sum((weights * self.preservation_weight(positions)).detach(), accumulation, ray_indices)
         return (preserved + (1 - accumulation.detach()).clamp(0, 1)).clamp(0, 1)
 
+    def in_chunks(self, function, *modules: torch.nn.Module):
+        """`function` (a field's evaluation at samples or positions) in chunks of config.field_chunk samples, gradient-
+        checkpointed while training (chunked.py); `modules`: the fields it evaluates."""
+        return chunked(function, lambda: self.config.field_chunk, modules)
+
     # ---- kept content held exactly (held_field.py) --------------------------------------------
     def _kept(self, positions: Tensor) -> Optional[Tensor]:
         """Which points are kept exactly as the base (w above keep_threshold); None when nothing is held."""
@@ -195,8 +201,8 @@ class SkedMixin(SkedEdit):
         base_field, mode = self.base_field, self.base_field.training
         base_field.train(self.field.training)  # the same appearance (a photo's while anchoring) on both sides
         try:
-            return held_field_outputs(lambda s: self._edit_colour(evaluate(self.field, s), s),
-                                      lambda s: evaluate(base_field, s), ray_samples,
+            return held_field_outputs(self.in_chunks(lambda s: self._edit_colour(evaluate(self.field, s), s), self.field),
+                                      self.in_chunks(lambda s: evaluate(base_field, s), base_field), ray_samples,
                                       self._kept(ray_samples.frustums.get_positions()))
         finally:
             base_field.train(mode)

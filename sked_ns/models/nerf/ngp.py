@@ -68,7 +68,8 @@ class SkedNGPModel(SkedMixin, NGPModel):
         base = self.frozen_base
         self.frozen_base = base.with_sampler(VolumetricSampler(occupancy_grid=base.occupancy_grid, density_fn=base.field.density_fn))
         # The edit's grid and marcher see kept cells as the base's: a kept cell never turns off.
-        self.held_density = self.held_density_fn(self.field.density_fn, base.field.density_fn)
+        self.held_density = self.held_density_fn(self.in_chunks(self.field.density_fn, self.field),
+                                                 self.in_chunks(base.field.density_fn, base.field))
         self.sampler.density_fn = self.held_density
         resolution = self.occupancy_grid.resolution.tolist()
         cells = occupancy_grid_mask(self.edit_box, self.scene_aabb.tolist(), resolution, self.config.grid_levels)
@@ -138,7 +139,7 @@ class SkedNGPModel(SkedMixin, NGPModel):
         if field_module is self.field:
             field_outputs, base_outputs = self._held_outputs(ray_samples, lambda field, samples: field(samples))
         else:
-            field_outputs = field_module(ray_samples)
+            field_outputs = self.in_chunks(field_module, field_module)(ray_samples)
         weights = render_weights(
             ray_samples.frustums.starts[..., 0], ray_samples.frustums.ends[..., 0],
             field_outputs[FieldHeadNames.DENSITY][..., 0], ray_indices, num_rays,
