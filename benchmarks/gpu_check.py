@@ -16,7 +16,8 @@ c. In the same process, times the bare compiled SD step (VAE encode forward + ba
 d. Checks nerfacc's CUDA marcher against the torch marcher on the edit's own grid, gsplat's
    rasterization against sked_ns.models.splat.rasterize's CPU compositor (images and gradients), edits a
    splatfacto base of the demo scene (fitted with the torch rasterizer; gsplat renders the edit on
-   CUDA), and runs the tests that only run on CUDA.
+   CUDA), runs benchmarks/memory.py on the GPU (each part of a step's memory from the CUDA allocator:
+   memory_cuda.json) and the tests that only run on CUDA.
 e. Writes benchmarks/results/gpu_check.json: per edit the setup, compile and per-iteration
    times (steady iterations, the end-of-training save left out), the 10,000-iteration extrapolation
    (compile, each checkpoint once and evaluation images included), the ratio to the SD floor, the
@@ -427,6 +428,18 @@ def cuda_tests(check: Check) -> dict:
     return check.result["cuda_tests"]
 
 
+def memory_check(check: Check, args) -> dict:
+    """benchmarks/memory.py on the GPU: each part of a step's peak, and the whole step's, from the CUDA allocator."""
+    output = check.output.with_name("memory_cuda.json")
+    command = [sys.executable, str(BENCHMARKS / "memory.py"), "--device", "cuda", "--output", str(output)]
+    subprocess.run(command, check=True, timeout=max(60.0, check.left() - 30))
+    steps = json.loads(output.read_text())["steps"]
+    summary = {key: {name: entry.get(name) for name in ("nerf_side_peak_gb", "total_fp32_gb", "projected_fp16_total_gb")}
+               for key, entry in steps.items()}
+    check.result["memory"] = {"results": str(output), "steps": summary}
+    return summary
+
+
 def environment(args) -> dict:
     info = {"python": platform.python_version(), "torch": torch.__version__, "cuda": torch.version.cuda,
             "device": torch.cuda.get_device_name() if args.device == "cuda" else f"{platform.machine()} CPU"}
@@ -556,6 +569,8 @@ def main() -> None:
             if trainer is not None and "sd_floor_ms" in check.result:
                 check.result["splat"]["ratio_to_sd_floor"] = check.result["splat"]["ms_per_iteration"] / check.result["sd_floor_ms"]
             del trainer
+        if args.device == "cuda" and "memory" not in skip:
+            check.phase("memory", lambda: memory_check(check, args), needs_s=120)
         if args.device == "cuda" and "tests" not in skip:
             check.phase("cuda_tests", lambda: cuda_tests(check), needs_s=60)
 

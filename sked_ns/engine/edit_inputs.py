@@ -14,6 +14,7 @@ from pathlib import Path
 
 import torch
 
+from sked_ns.engine.memory_plan import check_memory
 from sked_ns.errors import SkedFileNotFoundError, SkedUserError, reading
 from sked_ns.guidance import check_guidance
 from sked_ns.method.options import is_carving
@@ -37,6 +38,7 @@ def check_edit_inputs(config) -> None:
     sketch_set = load_sketch_set(model.sketches)
     check_sketch_pixels(sketch_set, model.silhouette_resolution)
     check_sketches_in_data(config)
+    check_memory(config)  # the plan printed; an edit that cannot fit on its GPU is refused with the options that do
 
 
 def check_devices(machine) -> None:

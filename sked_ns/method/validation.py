@@ -10,9 +10,7 @@ is known (model set-up).
 from __future__ import annotations
 
 import math
-from typing import List, Optional
-
-import torch
+from typing import List
 
 from sked_ns.errors import DATAMANAGER_FLAGS, flag, is_number, refuse, warn_option
 
@@ -24,11 +22,8 @@ MIN_SKETCH_PIXELS = 16
 LARGE_GUIDANCE_RESOLUTION = 512
 """Stable Diffusion's own input size; the paper renders 128 and upsamples."""
 SMALL_GUIDANCE_RESOLUTION = 32
-BYTES_PER_GUIDANCE_SAMPLE = 1024
-"""Rough memory one sample of the guidance render holds for the backward pass (field activations and their
-gradients): an order of magnitude, enough to refuse a size that surely cannot fit."""
-DEFAULT_SAMPLES_PER_RAY = 400
-"""nerfacto's samples per ray (256 + 96 proposal, 48 field) when the model does not say."""
+SMALL_FIELD_CHUNK = 1024
+"""Fewer field samples per checkpointed chunk than this cost calls, not memory."""
 
 
 def _is_whole(value) -> bool:
@@ -62,6 +57,9 @@ def option_problems(options) -> List[str]:
         value = getattr(options, name)
         if not (_is_whole(value) and value > 0):
             problems.append(f"{flag(name)} {value!r}: must be a whole number of pixels > 0 (the paper's 128).")
+    if not (_is_whole(options.field_chunk) and options.field_chunk >= 0):
+        problems.append(f"{flag('field_chunk')} {options.field_chunk!r}: must be a whole number of samples >= 0 "
+                        "(0: no gradient checkpointing).")
     if not (_is_whole(options.edit_box_warmup) and options.edit_box_warmup >= 0):
         problems.append(f"{flag('edit_box_warmup')} {options.edit_box_warmup!r}: must be a whole number of "
                         "iterations >= 0.")
@@ -108,35 +106,14 @@ def datamanager_problems(datamanager) -> List[str]:
     return problems
 
 
-def device_memory() -> int:
-    """Bytes the edit can use: the GPU's, else the machine's RAM."""
-    if torch.cuda.is_available():
-        return int(torch.cuda.get_device_properties(torch.cuda.current_device()).total_memory)
-    import psutil
-
-    return int(psutil.virtual_memory().total)
-
-
-def guidance_render_bytes(options) -> float:
-    """Rough memory of the random view rendered for guidance, with what backward needs."""
-    samples = getattr(options, "num_nerf_samples_per_ray", None)
-    proposals = getattr(options, "num_proposal_samples_per_ray", ())
-    per_ray = (samples + sum(proposals)) if samples is not None else DEFAULT_SAMPLES_PER_RAY
-    return options.guidance_resolution ** 2 * per_ray * options.samples_per_ray_scale * BYTES_PER_GUIDANCE_SAMPLE
-
-
-def warn_unusual_options(options, memory: Optional[int] = None) -> List[str]:
-    """Legal settings that are almost surely a mistake: warned; a guidance render that cannot fit: refused."""
+def warn_unusual_options(options) -> List[str]:
+    """Legal settings that are almost surely a mistake, warned. (Whether an edit fits its device is the memory
+    plan's to say: engine/memory_plan.py, once the base is known.)"""
     messages, resolution = [], options.guidance_resolution
     if resolution > LARGE_GUIDANCE_RESOLUTION:
-        needed, memory = guidance_render_bytes(options), device_memory() if memory is None else memory
-        if needed > memory:
-            refuse([f"{flag('guidance_resolution')} {resolution}: a {resolution}x{resolution} render with its "
-                    f"gradients needs about {needed / 2**30:.0f} GiB, more than this device's "
-                    f"{memory / 2**30:.0f} GiB. Use at most {LARGE_GUIDANCE_RESOLUTION} (the paper uses 128)."])
         messages.append(f"{flag('guidance_resolution')} {resolution}: larger than Stable Diffusion's "
                         f"{LARGE_GUIDANCE_RESOLUTION}-pixel input and {(resolution / 128) ** 2:.0f}x the paper's 128 "
-                        f"in rays per step (about {needed / 2**30:.1f} GiB); nothing is gained past 512.")
+                        "in rays per step; nothing is gained past 512.")
     elif resolution < SMALL_GUIDANCE_RESOLUTION:
         messages.append(f"{flag('guidance_resolution')} {resolution}: a {resolution}x{resolution} view shows the "
                         "guidance almost no shape (the paper uses 128).")
@@ -145,6 +122,10 @@ def warn_unusual_options(options, memory: Optional[int] = None) -> List[str]:
                         + ("under a quarter of the samples the base was trained with: thin parts and the new content "
                            "fall between samples." if options.samples_per_ray_scale < 0.25 else
                            "over 8x the base's samples per ray: each step costs as much more, for little gain."))
+    if 0 < options.field_chunk < SMALL_FIELD_CHUNK:
+        messages.append(f"{flag('field_chunk')} {options.field_chunk}: chunks this small make a step many times slower "
+                        "(one call per chunk) for no memory that matters; 0 turns checkpointing off, the default "
+                        "65536 keeps a chunk's activations to a few hundred MB.")
     if options.lambda_photo > 0 and options.photo_threshold >= 1:
         messages.append(f"{flag('photo_threshold')} 1: no photo ray has every weight above 1, so the photo anchor "
                         "never acts; use --pipeline.model.lambda-photo 0 to turn it off, or 0.99.")

@@ -8,6 +8,7 @@ import sys
 from pathlib import Path
 
 import pytest
+import torch
 
 BENCHMARKS = Path(__file__).resolve().parents[2] / "benchmarks"
 sys.path.insert(0, str(BENCHMARKS))
@@ -254,3 +255,48 @@ def test_sketch_view_fill_credits_a_correct_edit_that_kept_content_hides():
     # A third view sees the handle whole: there the two measures agree.
     whole = edit_quality.view_fill("crate", views[2], field, beta, resolution, nothing, nothing)
     assert whole["ios_region_perfect"] > 0.95 and whole["ios_visible"] == 0.0
+
+
+def test_the_memory_meter_counts_exactly_what_torch_allocates():
+    from memory_meter import live_tensor_bytes, metered, part
+
+    x = torch.randn(1000, 1000, requires_grad=True)  # 4 MB
+    with metered() as peaks:
+        with part("forward"):
+            y = (x @ x).relu()  # the product, then its relu (saved for the backward pass): 8 MB at once
+            loss = (y * 2).sum()
+            del y
+        with part("backward"):
+            loss.backward()  # x.grad stays
+    megabyte = 4_000_000
+    assert peaks.parts["forward"] == pytest.approx(2 * megabyte, abs=1024)
+    assert peaks.end_bytes == pytest.approx(megabyte, abs=1024)  # x.grad
+    assert peaks.peak_bytes >= peaks.parts["forward"]
+    assert peaks.parts_held_at_start["backward"] > 0
+    assert live_tensor_bytes(x) == 2 * megabyte  # x and its gradient
+    assert live_tensor_bytes({"a": [x, x.grad]}) == 2 * megabyte  # shared storages counted once
+
+
+@pytest.mark.slow
+def test_memory_benchmark_smoke_run(tmp_path):
+    """Every part of the step is measured for each base kind, the model of the plan gets its inputs, and chunking
+    cuts the NeRF side."""
+    output = tmp_path / "memory.json"
+    result = subprocess.run([sys.executable, str(BENCHMARKS / "memory.py"), "--sd", "tiny", "--resolutions", "16",
+                             "--silhouette-resolution", "16", "--base-steps", "5", "--output", str(output)],
+                            capture_output=True, text=True, timeout=900)
+    assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
+    data = json.loads(output.read_text())
+    assert set(data["steps"]) == {"nerfacto@16", "instant-ngp@16", "splatfacto@16"}
+    for key, entry in data["steps"].items():
+        step = entry["chunked"]
+        assert {"random_view_render_gb", "sketch_view_render_gb", "backward_gb", "optimiser_gb",
+                "held_at_guidance_gb"} <= set(step), key
+        assert entry["nerf_side_peak_gb"] > sum(entry["resident_gb"].values()) > 0
+        assert entry["projected_fp16_total_gb"] <= entry["total_fp32_gb"]
+        assert entry["settings"]["work"]["rays"] > 0 and entry["settings"]["base_weights_gb"] > 0
+    for key in ("nerfacto@16", "instant-ngp@16"):
+        assert data["steps"][key]["nerf_side_peak_unchunked_gb"] > data["steps"][key]["nerf_side_peak_gb"]
+    sd = data["stable_diffusion"]
+    assert sd["guidance_step_gb"] > 0 and sd["vae_encode_and_backward_gb"] > 0 and sd["unet_cfg_gb"] > 0
+    assert "| nerfacto@16 |" in result.stdout

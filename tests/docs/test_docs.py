@@ -92,3 +92,27 @@ def test_every_model_flag_the_docs_name_exists():
     missing = sorted({f"{page.name}: {flag}" for page in PAGES for flag in inline_sked_flags(page.read_text())
                       if not re.search(re.escape(flag.rstrip(".")) + r"(?![\w-])", text)})
     assert missing == []
+
+
+HARDWARE_ROWS = {
+    "`sked`, nerfacto base (128 px)": "nerfacto@128",
+    "`sked`, instant-ngp base (128 px)": "instant-ngp@128",
+    "`sked`, splatfacto base (128 px": "splatfacto@128",
+    "`sked-fast`, nerfacto base (64 px)": "nerfacto@64",
+}
+
+
+def test_the_readmes_hardware_table_is_the_memory_benchmarks():
+    """Each row's figures are benchmarks/results/memory.json's, rounded: a rerun that moves them fails here until the
+    README follows."""
+    import json
+
+    steps = json.loads((ROOT / "benchmarks" / "results" / "memory.json").read_text())["steps"]
+    lines = (ROOT / "README.md").read_text().splitlines()
+    for label, key in HARDWARE_ROWS.items():
+        row = next((line for line in lines if line.strip().startswith(f"| {label}")), None)
+        assert row is not None, f"README's hardware table has no row {label!r}"
+        entry = steps[key]
+        cells = [cell.strip() for cell in row.strip().strip("|").split("|")]
+        expected = [f"{entry[name]:.1f} GB" for name in ("nerf_side_peak_gb", "total_fp32_gb", "projected_fp16_total_gb")]
+        assert cells[1:4] == expected, f"{label}: README says {cells[1:4]}, memory.json {expected}"

@@ -1,0 +1,307 @@
+"""The memory an edit will need, planned before training: printed, and checked against the device.
+
+A model of what benchmarks/memory.py measures (docs/benchmarks.md, Memory), part by part:
+
+- resident: the editable copy of the base, the frozen base and Adam's two moments, 4x the base's
+  weights as its checkpoint holds them, and their gradients during the step (1x more);
+- the NeRF side of a step: what each ray rendered with gradients keeps for the backward pass (the
+  random view, the sketch views at their L_sil size, photo rays), plus one gradient-checkpointed chunk's
+  activations, or every sample's activations when chunking is off; a splat edit's side per rendered pixel;
+- Stable Diffusion: the UNet's and VAE encoder's weights, counted from the checkpoint's files at the
+  dtype they run in (fp16 on CUDA), and its step (VAE encode with its backward, the UNet with classifier-
+  free guidance), which grows with the image side squared.
+
+The step's peak is the larger of the NeRF side's own peak and what it holds when the guidance runs
+plus the guidance's step. The coefficients below are benchmarks/memory.py's measurements (fp32, CPU,
+torch hash grids) divided out; tests/engine/test_memory_plan.py checks the plan against its results file.
+"""
+
+from __future__ import annotations
+
+import functools
+import json
+import math
+import struct
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Dict, List, Optional, Tuple
+
+from sked_ns.errors import SkedUserError
+
+GB = 2**30
+
+
+@dataclass(frozen=True)
+class StepModel:
+    """Bytes of one representation's side of a step, per unit of work."""
+
+    kept_per_ray: float
+    """Kept for the backward pass per random-view ray (nerfacto: at its default samples per ray), fields
+    checkpointed; splats: per rendered pixel."""
+    activation_per_ray: float
+    """Per ray without checkpointing (every field activation, at the step's peak); splats: what the backward pass
+    adds per rendered pixel."""
+    activation_per_sample: float
+    """One field sample's activations: what a checkpointed chunk re-creates in the backward pass."""
+    samples_per_ray: float
+    """The samples per ray the per-ray figures were measured at (nerfacto: its proposals' and field's)."""
+    resident_per_weight_byte: float = 4.0
+    """The edit's resident tensors per byte of the base's weights: the editable copy, the frozen base, Adam's two
+    moments, and what the edit adds (nerfacto's colour residual grid)."""
+    kept_per_sketch_ray: Optional[float] = None
+    """Per sketch-view (or photo) ray when it differs from a random-view ray's: instant-ngp samples only occupied
+    cells, and random views frame the edit while sketch views show the whole scene. None: as a random-view ray."""
+    kept_per_weight_byte: float = 0.0
+    step_per_weight_byte: float = 0.0
+    """Splats: held at the guidance, and added by the rest of the step, per byte of the base's Gaussians (the
+    rasterizer's per-Gaussian work)."""
+
+
+STEP_MODELS: Dict[str, StepModel] = {
+    "nerfacto": StepModel(kept_per_ray=19467, activation_per_ray=466361, activation_per_sample=3529, samples_per_ray=400,
+                          resident_per_weight_byte=4.502),
+    # instant-ngp's samples per ray follow its occupancy grid (the scene); 16 or more fill a chunk at any step's rays.
+    "instant-ngp": StepModel(kept_per_ray=6736, activation_per_ray=92108, activation_per_sample=6385, samples_per_ray=16,
+                             kept_per_sketch_ray=2047, resident_per_weight_byte=4.251),
+    "splatfacto": StepModel(kept_per_ray=77.66, activation_per_ray=17.48, activation_per_sample=0.0, samples_per_ray=1,
+                            kept_per_weight_byte=6.159, step_per_weight_byte=379.6, resident_per_weight_byte=5.498),
+}
+
+SEED_BYTES = 59 * 4 * 3
+"""A splat edit's new Gaussian: 59 floats (position, scale, rotation, opacity, 16 SH colours), with Adam's moments."""
+SD_STEP_BYTES_AT_512 = 3.449e9
+"""Stable Diffusion v1.x's guidance step (VAE encode with backward, UNet batch 2) at a 512 px input, fp32."""
+VAE_CHECKPOINTING_SHARE = 0.7083
+"""The guidance step with the VAE encoder's gradient checkpointing, as a share of it without."""
+
+
+@dataclass
+class MemoryPlan:
+    """Expected bytes of an edit on its device, by part."""
+
+    device: str
+    resident: float
+    nerf_step: float
+    held_at_guidance: float
+    sd_weights: float = 0.0
+    sd_step: float = 0.0
+    sd_device: Optional[str] = None
+    """Where Stable Diffusion runs when not on `device` (--pipeline.model.guidance.device)."""
+    notes: List[str] = field(default_factory=list)
+
+    @property
+    def peak(self) -> float:
+        """The training device's peak."""
+        if self.sd_device is not None:
+            return self.resident + self.nerf_step
+        return self.resident + self.sd_weights + max(self.nerf_step, self.held_at_guidance + self.sd_step)
+
+    def line(self) -> str:
+        parts = f"edit model {self.resident / GB:.1f} + step {self.nerf_step / GB:.1f}"
+        if self.sd_weights:
+            where = f" on {self.sd_device}" if self.sd_device else ""
+            parts += f" + Stable Diffusion{where} {(self.sd_weights + self.sd_step) / GB:.1f}"
+        return f"Expected peak memory on {self.device}: {self.peak / GB:.1f} GB ({parts} GB)"
+
+
+def checkpoint_weight_bytes(checkpoint: Path) -> float:
+    """Bytes of a base checkpoint's model weights (floating-point tensors)."""
+    checkpoint = Path(checkpoint)
+    return _weight_bytes(checkpoint.resolve(), checkpoint.stat().st_mtime_ns)
+
+
+@functools.lru_cache(maxsize=8)
+def _weight_bytes(checkpoint: Path, modified: int) -> float:
+    # `ns-train sked` resolves its config more than once per start: the checkpoint is read once.
+    from sked_ns.method.frozen_base import read_model_state
+
+    state = read_model_state(checkpoint)
+    return float(sum(value.numel() * value.element_size() for value in state.values()
+                     if hasattr(value, "is_floating_point") and value.is_floating_point()))
+
+
+@dataclass(frozen=True)
+class StepWork:
+    """What one step renders with gradients."""
+
+    rays: float
+    """Rays of the random view (a splat edit: pixels of every render of the step)."""
+    sketch_rays: float = 0.0
+    """Rays of the sketch views at their L_sil size and of the photo anchor (NeRF edits)."""
+    sample_scale: float = 1.0
+    """Samples per ray relative to those its StepModel was measured at."""
+    chunk: int = 0
+    """Field samples per checkpointed chunk (0: none)."""
+
+
+def step_work(options, datamanager, representation: str) -> StepWork:
+    from sked_ns.sketches.sketch_set import load_sketch_set
+
+    resolution = options.guidance_resolution
+    random_view = float(resolution ** 2)
+    sketch = 0.0
+    for view in load_sketch_set(options.sketches).views:
+        scale = options.silhouette_resolution / max(view.width, view.height)
+        sketch += max(1, round(view.width * scale)) * max(1, round(view.height * scale))
+    if representation == "splatfacto":  # the supersampled random view, the sketch views, a photo at the view's size
+        photo = random_view if options.effective_lambda_photo > 0 else 0.0
+        return StepWork(random_view * max(int(options.splat_supersampling), 1) ** 2 + sketch + photo)
+    photos = options.lambda_photo > 0 and options.keep_threshold > options.photo_threshold
+    scale = float(options.samples_per_ray_scale)
+    if representation == "nerfacto":
+        samples = options.num_nerf_samples_per_ray + sum(options.num_proposal_samples_per_ray)
+        scale *= samples / STEP_MODELS["nerfacto"].samples_per_ray
+    return StepWork(random_view, sketch + (datamanager.train_num_rays_per_batch if photos else 0), scale,
+                    int(options.field_chunk))
+
+
+def nerf_side(representation: str, work: StepWork, base_bytes: float) -> Tuple[float, float]:
+    """(the side's own step peak, what it holds when the guidance runs), in bytes; the gradients of the editable
+    weights (base_bytes) come in the backward pass."""
+    model = STEP_MODELS[representation]
+    if representation == "splatfacto":  # per rendered pixel and per Gaussian: kept for the backward pass, and added
+        held = work.rays * model.kept_per_ray + base_bytes * model.kept_per_weight_byte
+        return held + work.rays * model.activation_per_ray + base_bytes * (model.step_per_weight_byte + 1), held
+    rays = work.rays + work.sketch_rays
+    if work.chunk <= 0:  # every activation kept: counted as held from the render on
+        held = rays * model.activation_per_ray * work.sample_scale
+        return held + base_bytes, held
+    sketch = model.kept_per_ray if model.kept_per_sketch_ray is None else model.kept_per_sketch_ray
+    held = (work.rays * model.kept_per_ray + work.sketch_rays * sketch) * work.sample_scale
+    transient = min(work.chunk, rays * model.samples_per_ray * work.sample_scale) * model.activation_per_sample
+    return held + transient + base_bytes, held
+
+
+def _safetensors_parameters(path: Path, prefixes: Tuple[str, ...] = ()) -> Optional[int]:
+    """Parameters in a safetensors file (those whose names start with PREFIXES), from its header alone."""
+    try:
+        with open(path, "rb") as handle:
+            (length,) = struct.unpack("<Q", handle.read(8))
+            header = json.loads(handle.read(length))
+    except (OSError, ValueError, struct.error):
+        return None
+    return sum(math.prod(entry["shape"]) for name, entry in header.items()
+               if name != "__metadata__" and (not prefixes or name.startswith(prefixes)))
+
+
+def _weights_file(folder: Path) -> Optional[Path]:
+    for name in ("diffusion_pytorch_model.safetensors", "diffusion_pytorch_model.bin"):
+        if (folder / name).is_file():
+            return folder / name
+    return None
+
+
+def sd_bytes(guidance, device_type: str) -> Tuple[float, float]:
+    """(Stable Diffusion's weights on its device, its guidance step), in bytes; (0, 0) when the weights are not
+    local (they are checked before this runs) or the guidance is another kind."""
+    from sked_ns.guidance.stable_diffusion import StableDiffusionGuidanceConfig, checkpoint_folder
+
+    if not isinstance(guidance, StableDiffusionGuidanceConfig):
+        return 0.0, 0.0
+    try:
+        folder = checkpoint_folder(guidance.model, offline=True)
+    except SkedUserError:
+        return 0.0, 0.0
+    if folder is None:
+        return 0.0, 0.0
+    half = (guidance.device or device_type).startswith("cuda") and guidance.half_precision
+    size = 2 if half else 4
+    parameters = 0.0
+    for part, prefixes in (("unet", ()), ("vae", ("encoder.", "quant_conv."))):
+        path = _weights_file(folder / part)
+        if path is None:
+            continue
+        count = _safetensors_parameters(path, prefixes) if path.suffix == ".safetensors" else None
+        parameters += count if count is not None else path.stat().st_size / 4  # a .bin: fp32 as saved, decoder too
+    step = SD_STEP_BYTES_AT_512 * (guidance.image_size / 512) ** 2 * size / 4
+    if guidance.vae_checkpointing:
+        step *= VAE_CHECKPOINTING_SHARE
+    return parameters * size, step
+
+
+def resident_bytes(representation: str, base_bytes: float, options) -> float:
+    """What the edit holds between steps: its model and optimiser state (splats: the seeds too)."""
+    from sked_ns.method.options import is_carving
+
+    seeds = options.num_seeds * SEED_BYTES if representation == "splatfacto" and not is_carving(options) else 0.0
+    return STEP_MODELS[representation].resident_per_weight_byte * base_bytes + seeds
+
+
+def plan_edit(config) -> MemoryPlan:
+    """The plan of an edit's config, after resolve_edit filled it in from the base."""
+    from sked_ns.models.registry import representation_of
+    from sked_ns.method.options import is_carving
+
+    options, machine = config.pipeline.model, config.machine
+    representation = representation_of(options).name  # resolve_edit refused any other kind of base
+    device = machine.device_type if machine.device_type != "cuda" else "cuda:0"
+    weights = checkpoint_weight_bytes(Path(options.base_checkpoint))
+    step, held = nerf_side(representation, step_work(options, config.pipeline.datamanager, representation), weights)
+    plan = MemoryPlan(device=device, resident=resident_bytes(representation, weights, options), nerf_step=step,
+                      held_at_guidance=held)
+    if not is_carving(options):
+        plan.sd_weights, plan.sd_step = sd_bytes(options.guidance, machine.device_type)
+        sd_device = getattr(options.guidance, "device", None)
+        if sd_device and sd_device != device and not (sd_device == "cuda" and device == "cuda:0"):
+            plan.sd_device = sd_device
+    return plan
+
+
+_PRINTED: set = set()
+
+
+def _free_bytes(device: str) -> Optional[float]:
+    """Free memory of a CUDA device now; None elsewhere (a CPU edit is planned, not refused)."""
+    import torch
+
+    if not device.startswith("cuda") or not torch.cuda.is_available():
+        return None
+    return float(torch.cuda.mem_get_info(torch.device(device))[0])
+
+
+def options_that_fit(config, free: float) -> List[str]:
+    """The flags, each on its own, under which the plan fits in FREE bytes, with their expected peaks."""
+    import copy
+
+    import torch
+
+    tries = []
+    if torch.cuda.is_available() and torch.cuda.device_count() > 1 and hasattr(config.pipeline.model.guidance, "device"):
+        tries.append(("--pipeline.model.guidance.device cuda:1", lambda c: setattr(c.pipeline.model.guidance, "device", "cuda:1")))
+    tries += [
+        ("--pipeline.model.guidance-resolution 64 --pipeline.model.silhouette-resolution 64 (or ns-train sked-fast)",
+         lambda c: (setattr(c.pipeline.model, "guidance_resolution", 64), setattr(c.pipeline.model, "silhouette_resolution", 64))),
+        ("--pipeline.model.field-chunk 16384", lambda c: setattr(c.pipeline.model, "field_chunk", 16384)),
+        ("--pipeline.model.guidance.vae-checkpointing True",
+         lambda c: setattr(c.pipeline.model.guidance, "vae_checkpointing", True)),
+    ]
+    fitting = []
+    for flags, change in tries:
+        trial = copy.deepcopy(config)
+        try:
+            change(trial)
+        except AttributeError:
+            continue
+        peak = plan_edit(trial).peak
+        if peak <= free:
+            fitting.append(f"{flags} (about {peak / GB:.1f} GB)")
+    return fitting
+
+
+def check_memory(config, free: Optional[float] = None) -> MemoryPlan:
+    """Print the plan once; refuse, before anything is written, an edit that cannot fit in the CUDA device's free
+    memory (FREE: bytes, for tests), naming the options that would."""
+    plan = plan_edit(config)
+    line = plan.line()
+    if line not in _PRINTED:
+        _PRINTED.add(line)
+        print(line + " (model: docs/benchmarks.md, Memory)", flush=True)
+    free = _free_bytes(plan.device) if free is None else free
+    if free is not None and plan.peak > free:
+        fitting = options_that_fit(config, free)
+        raise SkedUserError(
+            f"this edit needs about {plan.peak / GB:.1f} GB on {plan.device}, which has {free / GB:.1f} GB free. "
+            + (f"Options that fit: {'; '.join(fitting)}." if fitting else
+               "None of the memory options fits alone: free the GPU, or use a larger one.")
+            + " (docs/troubleshooting.md, Out of memory)")
+    return plan

@@ -1,0 +1,173 @@
+"""The memory plan (engine/memory_plan.py): its model against benchmarks/memory.py's measurements, its weight count
+against loaded weights, and the refusal of an edit that cannot fit, before anything is written."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+import torch
+
+from sked_ns.engine import memory_plan
+from sked_ns.engine.memory_plan import GB, StepWork, nerf_side, sd_bytes
+from sked_ns.errors import SkedUserError
+from sked_ns.guidance.stable_diffusion import StableDiffusionGuidanceConfig
+from sked_ns.method.options import SkedOptions
+from tiny_sd import build_tiny_stable_diffusion
+
+RESULTS = Path(__file__).resolve().parents[2] / "benchmarks" / "results" / "memory.json"
+WITHIN = 0.25
+"""The plan's promise: within 25% of what the benchmark measured."""
+
+
+def _measured():
+    result = json.loads(RESULTS.read_text())
+    assert result["steps"], "benchmarks/results/memory.json has no steps"
+    return result
+
+
+def _work(entry) -> StepWork:
+    """The entry's step as the plan counts it (benchmarks/memory.py, entry_work)."""
+    settings = entry["settings"]
+    work = dict(settings["work"])
+    if settings.get("field_chunk") is not None:
+        rays = settings["rays"]
+        work.update(rays=float(rays["random_view"]), sketch_rays=float(rays["sketch_views"] + rays["photo"]))
+    return StepWork(**work)
+
+
+def _close(planned: float, measured: float, what: str) -> None:
+    assert abs(planned - measured) <= WITHIN * measured, f"{what}: planned {planned:.3f} GB, measured {measured:.3f} GB"
+
+
+def test_the_plan_predicts_every_measured_step_within_a_quarter():
+    """Each base kind at each size, chunked and unchunked: the NeRF (splat) side of the step, what it holds when
+    the guidance runs, and the whole step composed with Stable Diffusion's side."""
+    result = _measured()
+    for key, entry in result["steps"].items():
+        representation = key.split("@")[0]
+        settings = entry["settings"]
+        work = _work(entry)
+        weights = settings["base_weights_gb"] * GB
+        step, held = nerf_side(representation, work, weights)
+        _close(step / GB, entry["chunked"]["step_peak_gb"], f"{key} step")
+        _close(held / GB, entry["chunked"]["held_at_guidance_gb"], f"{key} held at the guidance")
+        resident = memory_plan.resident_bytes(representation, weights, SkedOptions(prompt="a hat"))  # not carving
+        _close(resident / GB, sum(entry["resident_gb"].values()), f"{key} resident")
+        unchunked = entry.get("unchunked", {})
+        if "step_peak_gb" in unchunked:
+            step, _ = nerf_side(representation, StepWork(work.rays, work.sketch_rays, work.sample_scale, 0), weights)
+            _close(step / GB, unchunked["step_peak_gb"], f"{key} unchunked step")
+        sd = result.get("stable_diffusion")
+        if sd and "total_fp32_gb" in entry:
+            plan = memory_plan.MemoryPlan("cpu", resident, *nerf_side(representation, work, weights),
+                                          sd_weights=sum(sd["weights_gb"].values()) * GB,
+                                          sd_step=memory_plan.SD_STEP_BYTES_AT_512 * (sd["image_size"] / 512) ** 2)
+            _close(plan.peak / GB, entry["total_fp32_gb"], f"{key} whole step")
+
+
+def test_the_default_step_fits_the_targets():
+    """The default edit (nerfacto, 128 px): its NeRF side at most 3 GB (fp32, torch hash grids), the whole step
+    projected to fp16 at most 8 GB, as measured."""
+    entry = _measured()["steps"]["nerfacto@128"]
+    assert entry["nerf_side_peak_gb"] <= 3.0
+    if "projected_fp16_total_gb" in entry:
+        assert entry["projected_fp16_total_gb"] <= 8.0
+
+
+@pytest.fixture(scope="module")
+def tiny_sd(tmp_path_factory):
+    return build_tiny_stable_diffusion(tmp_path_factory.mktemp("tiny-sd"))
+
+
+def test_stable_diffusions_weights_are_counted_from_the_file_headers(tiny_sd):
+    from diffusers import AutoencoderKL, UNet2DConditionModel
+
+    unet = UNet2DConditionModel.from_pretrained(tiny_sd / "unet")
+    vae = AutoencoderKL.from_pretrained(tiny_sd / "vae")
+    encoder = sum(p.numel() for name, p in vae.named_parameters() if name.startswith(("encoder.", "quant_conv.")))
+    parameters = sum(p.numel() for p in unet.parameters()) + encoder
+    config = StableDiffusionGuidanceConfig(model=str(tiny_sd), image_size=512)
+    weights, step = sd_bytes(config, "cpu")
+    assert weights == 4 * parameters  # fp32 on the CPU, the decoder never loaded
+    assert sd_bytes(config, "cuda")[0] == 2 * parameters  # fp16 on a GPU
+    config.half_precision = False
+    assert sd_bytes(config, "cuda")[0] == 4 * parameters
+    config.vae_checkpointing = True
+    assert sd_bytes(config, "cpu")[1] <= step
+    assert sd_bytes(StableDiffusionGuidanceConfig(model=str(tiny_sd), image_size=256), "cpu")[1] == pytest.approx(step / 4)
+
+
+def test_chunking_bounds_the_step_and_its_absence_does_not():
+    weights = 1e8
+    rays = StepWork(rays=128**2, sketch_rays=2 * 128**2, chunk=65536)
+    small, _ = nerf_side("nerfacto", rays, weights)
+    unchunked, _ = nerf_side("nerfacto", StepWork(rays.rays, rays.sketch_rays, 1.0, 0), weights)
+    assert small < unchunked
+    bigger, _ = nerf_side("nerfacto", StepWork(4 * rays.rays, rays.sketch_rays, 1.0, 65536), weights)
+    huge, _ = nerf_side("nerfacto", StepWork(4 * rays.rays, rays.sketch_rays, 1.0, 0), weights)
+    assert bigger - small < huge - unchunked  # rays cost their kept bytes only, not their activations
+
+
+def _config(scene, tmp_path, **model):
+    from sked_ns.engine.edit_run import edit_config
+
+    config = edit_config(scene["base"], scene["data"], scene["sketches"], tmp_path / "out", iterations=5)
+    for key, value in model.items():
+        setattr(config.pipeline.model, key, value)
+    return config
+
+
+def test_an_edit_that_cannot_fit_is_refused_with_the_options_that_do(scene, tmp_path, monkeypatch, capsys):
+    from sked_ns.engine.trainer import resolve_edit
+
+    memory_plan._PRINTED.clear()
+    config = _config(scene, tmp_path, guidance_resolution=128, silhouette_resolution=128)
+    resolve_edit(config)
+    plan = memory_plan.plan_edit(config)
+    assert plan.peak > 0 and "Expected peak memory on cpu" in capsys.readouterr().out
+    small = memory_plan.plan_edit(_resolved(scene, tmp_path / "small", guidance_resolution=64,
+                                            silhouette_resolution=64)).peak
+    assert small < plan.peak
+    # A GPU with room for the 64 px edit but not the 128 px one: refused, naming the option that fits.
+    monkeypatch.setattr(memory_plan, "_free_bytes", lambda device: (small + plan.peak) / 2)
+    config = _config(scene, tmp_path, guidance_resolution=128, silhouette_resolution=128)
+    with pytest.raises(SkedUserError) as refused:
+        resolve_edit(config)
+    message = str(refused.value)
+    assert "--pipeline.model.guidance-resolution 64" in message and "free" in message
+    assert not (tmp_path / "out").exists()  # refused before anything is written
+    monkeypatch.setattr(memory_plan, "_free_bytes", lambda device: small / 10)
+    with pytest.raises(SkedUserError, match="None of the memory options fits"):
+        resolve_edit(_config(scene, tmp_path, guidance_resolution=128, silhouette_resolution=128))
+
+
+def _resolved(scene, tmp_path, **model):
+    from sked_ns.engine.trainer import resolve_edit
+
+    config = _config(scene, tmp_path, **model)
+    resolve_edit(config)
+    return config
+
+
+def test_no_nan_in_the_plan_at_the_extremes():
+    for representation in memory_plan.STEP_MODELS:
+        for work in (StepWork(0.0, 0.0, 1.0, 0), StepWork(1e9, 1e9, 8.0, 1), StepWork(1.0, 0.0, 0.25, 10**9)):
+            step, held = nerf_side(representation, work, 0.0)
+            assert torch.isfinite(torch.tensor([step, held])).all() and step >= held >= 0
+
+
+def test_the_plans_coefficients_are_the_benchmarks():
+    """STEP_MODELS and the SD figures are what benchmarks/memory.py derived from its measurements (rerun it, then
+    copy its plan_coefficients)."""
+    coefficients = _measured()["plan_coefficients"]
+    for representation, model in memory_plan.STEP_MODELS.items():
+        if representation not in coefficients:
+            continue
+        for name, value in coefficients[representation].items():
+            assert getattr(model, name) == pytest.approx(value, rel=0.01, abs=1.0), f"{representation}.{name}"
+    sd = coefficients.get("stable_diffusion")
+    if sd:
+        assert memory_plan.SD_STEP_BYTES_AT_512 == pytest.approx(sd["step_bytes_at_512"], rel=0.01)
+        assert memory_plan.VAE_CHECKPOINTING_SHARE == pytest.approx(sd["vae_checkpointing_share"], rel=0.01)
