@@ -91,7 +91,7 @@ def mark_parts(trainer) -> Callable[[], None]:
         resets.append(_marked(model, "_render_edit", ["sketch_view_render"]))
     resets.append(_marked(model, "render_base", ["frozen_base_render"]))
     optimizers = trainer.optimizers
-    resets.append(_marked(optimizers, "optimizer_scaler_step_all", ["optimiser"]))
+    resets.append(_marked(optimizers, "optimizer_scaler_step_some", ["optimiser"]))  # nerfstudio 1.1.5 steps "some"
     scaler = trainer.grad_scaler
     original_scale = scaler.scale
 

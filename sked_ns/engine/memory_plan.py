@@ -97,11 +97,12 @@ class MemoryPlan:
         return self.resident + self.sd_weights + max(self.nerf_step, self.held_at_guidance + self.sd_step)
 
     def line(self) -> str:
-        parts = f"edit model {self.resident / GB:.1f} + step {self.nerf_step / GB:.1f}"
+        parts = f"the edit's model {self.resident / GB:.1f} GB, its step {self.nerf_step / GB:.1f} GB"
         if self.sd_weights:
             where = f" on {self.sd_device}" if self.sd_device else ""
-            parts += f" + Stable Diffusion{where} {(self.sd_weights + self.sd_step) / GB:.1f}"
-        return f"Expected peak memory on {self.device}: {self.peak / GB:.1f} GB ({parts} GB)"
+            parts += (f"; Stable Diffusion{where} {self.sd_weights / GB:.1f} GB and its step {self.sd_step / GB:.1f} GB, "
+                      "while the edit's render waits for it")
+        return f"Expected peak memory on {self.device}: {self.peak / GB:.1f} GB ({parts})"
 
 
 def checkpoint_weight_bytes(checkpoint: Path) -> float:

@@ -135,3 +135,13 @@ def test_splat_settings_are_typeable_for_any_base_and_reach_the_splat_model():
 def test_splat_settings_that_edit_too_much_are_warned(name, value):
     with pytest.warns(SkedOptionWarning, match=f"--pipeline.model.{name.replace('_', '-')} "):
         warn_unusual_options(SkedNerfactoModelConfig(**{name: value}))
+
+
+def test_field_chunks_below_zero_are_refused_and_tiny_ones_warned():
+    with pytest.raises(SkedOptionError, match="field-chunk -1"):
+        check_options(SkedNerfactoModelConfig(field_chunk=-1))
+    with pytest.warns(SkedOptionWarning, match="field-chunk 8: chunks this small"):
+        check_options(SkedNerfactoModelConfig(field_chunk=8))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", SkedOptionWarning)
+        check_options(SkedNerfactoModelConfig(field_chunk=0))  # off: legal, the fastest
