@@ -58,13 +58,13 @@ class StepModel:
 
 
 STEP_MODELS: Dict[str, StepModel] = {
-    "nerfacto": StepModel(kept_per_ray=19467, activation_per_ray=466361, activation_per_sample=3529, samples_per_ray=400,
+    "nerfacto": StepModel(kept_per_ray=19466, activation_per_ray=465561, activation_per_sample=3529, samples_per_ray=400,
                           resident_per_weight_byte=4.502),
     # instant-ngp's samples per ray follow its occupancy grid (the scene); 16 or more fill a chunk at any step's rays.
-    "instant-ngp": StepModel(kept_per_ray=6736, activation_per_ray=92108, activation_per_sample=6385, samples_per_ray=16,
-                             kept_per_sketch_ray=2047, resident_per_weight_byte=4.251),
-    "splatfacto": StepModel(kept_per_ray=77.66, activation_per_ray=17.48, activation_per_sample=0.0, samples_per_ray=1,
-                            kept_per_weight_byte=6.159, step_per_weight_byte=379.6, resident_per_weight_byte=5.498),
+    "instant-ngp": StepModel(kept_per_ray=4965, activation_per_ray=92260, activation_per_sample=6385, samples_per_ray=16,
+                             kept_per_sketch_ray=2270, resident_per_weight_byte=4.251),
+    "splatfacto": StepModel(kept_per_ray=77.17, activation_per_ray=17.48, activation_per_sample=0.0, samples_per_ray=1,
+                            kept_per_weight_byte=6.266, step_per_weight_byte=379.6, resident_per_weight_byte=5.498),
 }
 
 SEED_BYTES = 59 * 4 * 3
