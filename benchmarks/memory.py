@@ -157,8 +157,9 @@ def time_steps(trainer, first_step: int, count: int, device: str) -> float:
     return float(sorted(times)[len(times) // 2])
 
 
-def nerf_side(work: Path, method: str, base: Path, resolution: int, args) -> Dict:
-    """One base kind at one random-view size: the step with chunks (and without, for NeRF bases)."""
+def nerf_side(work: Path, method: str, base: Path, resolution: int, args, smaller: Optional[Dict] = None) -> Dict:
+    """One base kind at one random-view size: the step with chunks (and without, for NeRF bases; SMALLER: its
+    entry at a smaller size, to skip an unchunked step this machine cannot hold)."""
     from gpu_check import ns_train_sked
 
     arguments = [
@@ -199,7 +200,7 @@ def nerf_side(work: Path, method: str, base: Path, resolution: int, args) -> Dic
     if nerf and not args.skip_unchunked:
         default_chunk = model.config.field_chunk
         model.config.field_chunk = 0
-        needed = projected_unchunked_bytes(entry, resolution, args)
+        needed = projected_unchunked_bytes(smaller, resolution)
         if needed is not None and needed > args.host_memory_gb * GB * 0.8:
             entry["unchunked"] = {"not_run": f"projected {needed / GB:.1f} GB from the smaller size's step, over 80% "
                                              f"of this machine's {args.host_memory_gb:.0f} GB"}
@@ -219,12 +220,8 @@ def nerf_side(work: Path, method: str, base: Path, resolution: int, args) -> Dic
     return entry
 
 
-SMALLER: Dict[str, Dict] = {}
-"""Each method's entry at the previous (smaller) size, to project an unchunked step before running it."""
-
-
-def projected_unchunked_bytes(entry: Dict, resolution: int, args) -> Optional[float]:
-    previous = SMALLER.get(entry["settings"]["model"])
+def projected_unchunked_bytes(previous: Optional[Dict], resolution: int) -> Optional[float]:
+    """An unchunked step at RESOLUTION from the same base's entry at a smaller size (its random view grown)."""
     if not previous or "step_peak_gb" not in previous.get("unchunked", {}):
         return None
     smaller = previous["settings"]["guidance_resolution"]
@@ -513,11 +510,11 @@ def main() -> None:
         work = args.workdir or Path(scratch)
         bases = make_bases(work, methods, args) if "steps" in parts else {}
         for method in methods if "steps" in parts else []:
+            smaller = None
             for resolution in resolutions:
                 key = f"{method}@{resolution}"
                 print(f"[{key}] ...", flush=True)
-                entry = nerf_side(work, method, bases[method], resolution, args)
-                SMALLER[entry["settings"]["model"]] = entry
+                entry = smaller = nerf_side(work, method, bases[method], resolution, args, smaller)
                 result["steps"][key] = entry
                 write()
         if args.sd != "none" and "sd" in parts:

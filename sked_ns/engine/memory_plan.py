@@ -2,8 +2,8 @@
 
 A model of what benchmarks/memory.py measures (docs/benchmarks.md, Memory), part by part:
 
-- resident: the editable copy of the base, the frozen base and Adam's two moments, 4x the base's
-  weights as its checkpoint holds them, and their gradients during the step (1x more);
+- resident: the editable copy of the base, the frozen base and Adam's two moments (about 4x the
+  base's weights as its checkpoint holds them), and their gradients during the step (1x more);
 - the NeRF side of a step: what each ray rendered with gradients keeps for the backward pass (the
   random view, the sketch views at their L_sil size, photo rays), plus one gradient-checkpointed chunk's
   activations, or every sample's activations when chunking is off; a splat edit's side per rendered pixel;
@@ -22,7 +22,7 @@ import functools
 import json
 import math
 import struct
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Dict, List, Optional, Tuple
 
@@ -87,7 +87,6 @@ class MemoryPlan:
     sd_step: float = 0.0
     sd_device: Optional[str] = None
     """Where Stable Diffusion runs when not on `device` (--pipeline.model.guidance.device)."""
-    notes: List[str] = field(default_factory=list)
 
     @property
     def peak(self) -> float:
@@ -136,14 +135,11 @@ class StepWork:
 
 
 def step_work(options, datamanager, representation: str) -> StepWork:
-    from sked_ns.sketches.sketch_set import load_sketch_set
+    from sked_ns.sketches.sketch_set import load_sketch_set, sketch_view_size
 
-    resolution = options.guidance_resolution
-    random_view = float(resolution ** 2)
-    sketch = 0.0
-    for view in load_sketch_set(options.sketches).views:
-        scale = options.silhouette_resolution / max(view.width, view.height)
-        sketch += max(1, round(view.width * scale)) * max(1, round(view.height * scale))
+    random_view = float(options.guidance_resolution ** 2)
+    sketch = float(sum(math.prod(sketch_view_size(view, options.silhouette_resolution))
+                       for view in load_sketch_set(options.sketches).views))
     if representation == "splatfacto":  # the supersampled random view, the sketch views, a photo at the view's size
         photo = random_view if options.effective_lambda_photo > 0 else 0.0
         return StepWork(random_view * max(int(options.splat_supersampling), 1) ** 2 + sketch + photo)
@@ -186,7 +182,9 @@ def _safetensors_parameters(path: Path, prefixes: Tuple[str, ...] = ()) -> Optio
 
 
 def _weights_file(folder: Path) -> Optional[Path]:
-    for name in ("diffusion_pytorch_model.safetensors", "diffusion_pytorch_model.bin"):
+    from sked_ns.guidance.stable_diffusion import DIFFUSERS_WEIGHTS
+
+    for name in DIFFUSERS_WEIGHTS[:2]:  # one file each (a sharded checkpoint's index is counted as fp32 below: none)
         if (folder / name).is_file():
             return folder / name
     return None
@@ -289,15 +287,15 @@ def options_that_fit(config, free: float) -> List[str]:
     return fitting
 
 
-def check_memory(config, free: Optional[float] = None) -> MemoryPlan:
+def check_memory(config) -> MemoryPlan:
     """Print the plan once; refuse, before anything is written, an edit that cannot fit in the CUDA device's free
-    memory (FREE: bytes, for tests), naming the options that would."""
+    memory, naming the options that would."""
     plan = plan_edit(config)
     line = plan.line()
     if line not in _PRINTED:
         _PRINTED.add(line)
         print(line + " (model: docs/benchmarks.md, Memory)", flush=True)
-    free = _free_bytes(plan.device) if free is None else free
+    free = _free_bytes(plan.device)
     if free is not None and plan.peak > free:
         fitting = options_that_fit(config, free)
         raise SkedUserError(

@@ -171,10 +171,15 @@ class SketchSet:
         return SketchSet(views=views, frame="model")
 
 
+def sketch_view_size(view: SketchView, resolution: int) -> Tuple[int, int]:
+    """(width, height) of a sketch view rescaled so the longer side is `resolution` pixels."""
+    scale = resolution / max(view.width, view.height)
+    return max(1, round(view.width * scale)), max(1, round(view.height * scale))
+
+
 def sketch_view_at(view: SketchView, resolution: int) -> Tuple[Cameras, torch.Tensor]:
     """A sketch view's camera and mask rescaled so the longer side is `resolution` pixels."""
-    scale = resolution / max(view.width, view.height)
-    width, height = max(1, round(view.width * scale)), max(1, round(view.height * scale))
+    width, height = sketch_view_size(view, resolution)
     sx, sy = width / view.width, height / view.height
     mask = cv2.resize(view.mask.astype(np.float32), (width, height), interpolation=cv2.INTER_AREA) > 0.5
     camera = cameras_of(torch.tensor(view.camera_to_world[None], dtype=torch.float32),

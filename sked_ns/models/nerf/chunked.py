@@ -15,14 +15,13 @@ from __future__ import annotations
 
 import contextlib
 import math
-from typing import Callable, Dict, Sequence, TypeVar, Union
+from typing import Callable, Dict, Sequence, Union
 
 import torch
 from nerfstudio.utils.tensor_dataclass import TensorDataclass
 from torch import Tensor
 from torch.utils.checkpoint import checkpoint
 
-Batch = TypeVar("Batch", Tensor, TensorDataclass)
 Outputs = Union[Tensor, Dict]
 
 
@@ -58,9 +57,8 @@ def chunked(function: Callable[..., Outputs], samples_per_chunk: Union[int, Call
 
     `batch` is positions (..., 3) or RaySamples; the outputs a tensor or a dict of tensors with the batch's leading
     axis. Without autograd (the frozen base, evaluation) the chunks are plain calls; with `samples_per_chunk` 0 it
-    is `function` itself;
-    a callable `samples_per_chunk` is read at each call (the model's config). `modules`: whose train/eval mode the
-    function depends on (restored for the backward pass's re-run).
+    is `function` itself. A callable `samples_per_chunk` is read at each call (the model's config). `modules`:
+    whose train/eval mode the function depends on (restored for the backward pass's re-run).
     """
     size = samples_per_chunk if callable(samples_per_chunk) else (lambda: samples_per_chunk)
 

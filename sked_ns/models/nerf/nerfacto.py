@@ -64,7 +64,8 @@ class SkedNerfactoModel(SkedMixin, NerfactoModel):
         self._load_base_weights()
         self._freeze_base(field=self.field, proposal_networks=self.proposal_networks)
         # Proposals see kept space as the base does, so a ray through kept space only samples as the base's did.
-        base_fns = [self.in_chunks(network.density_fn, network) for network in self.frozen_base.proposal_networks]
+        base_fns = self._base_density_fns = [self.in_chunks(network.density_fn, network)
+                                             for network in self.frozen_base.proposal_networks]
         self.density_fns = [self.held_density_fn(fn, base_fns[min(i, len(base_fns) - 1)])
                             for i, fn in enumerate(self.density_fns)]
         self._boost_proposals_in_edit_box()
@@ -74,8 +75,7 @@ class SkedNerfactoModel(SkedMixin, NerfactoModel):
     def render_base(self, ray_bundle: RayBundle) -> Dict[str, Tensor]:
         """The frozen base seen along `ray_bundle` (already collided), with its own proposal networks."""
         base = self.frozen_base
-        outputs, samples, _, weights = self._render_with(ray_bundle, base.field,
-                                                         [self.in_chunks(p.density_fn, p) for p in base.proposal_networks])
+        outputs, samples, _, weights = self._render_with(ray_bundle, base.field, self._base_density_fns)
         outputs["preservation_weight"] = self.expected_preservation(samples.frustums.get_positions(), weights,
                                                                     outputs["accumulation"])
         return {key: value for key, value in outputs.items() if key not in ("weights_list", "ray_samples_list")}
