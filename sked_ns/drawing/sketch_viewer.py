@@ -20,7 +20,7 @@ import tempfile
 import threading
 import time
 from pathlib import Path
-from typing import List, Optional
+from typing import Callable, List, Optional
 
 import numpy as np
 import torch
@@ -38,20 +38,26 @@ CPU_PREVIEW_WIDTH = 160
 backdrop to click on (the mask keeps VIEW_WIDTH), and it costs about 1/10 of the rays."""
 
 
-def _load(run: Path, device: str, flag: str = "sked-sketch"):
-    """(config, pipeline, dataparser transform) of a base run, with a clear error if it does not load."""
+def _load(run: Path, device: str, flag: str = "sked-sketch", data: Optional[Path] = None):
+    """(run folder, pipeline, dataparser transform) of a base run, with a clear error if it does not load; `data`:
+    the dataset's folder when it is not where the run's config.yml says."""
     from sked_ns.evaluation.render import load_pipeline
 
     run = run.parent if run.name == "config.yml" else run
-    with reading(f"sked-sketch: the base {run}", "Point at a trained run's folder or its config.yml, with the data "
+    with reading(f"{flag}: the base {run}", "Point at a trained run's folder or its config.yml, with the data "
                  "it was trained on where its config.yml says."):
-        pipeline = load_pipeline(run, device, flag=flag)
+        pipeline = load_pipeline(run, device, flag=flag, data=data)
+    return run, pipeline, sketch_frame(pipeline)
+
+
+def sketch_frame(pipeline) -> DataparserTransform:
+    """The frame sketch sets are saved in (the data's transforms.json frame, the one sets copied from the photos'
+    entries are in) -> the pipeline's model frame."""
     from sked_ns.sketches.data_frame import data_frame_transform
 
     outputs = pipeline.datamanager.train_dataparser_outputs
     transform = DataparserTransform(outputs.dataparser_transform.numpy().astype(np.float64), float(outputs.dataparser_scale))
-    # Saved sets are in the data's transforms.json frame, the frame sets copied from the photos' entries are in.
-    return run, pipeline, data_frame_transform(pipeline.datamanager.config.dataparser, transform)
+    return data_frame_transform(pipeline.datamanager.config.dataparser, transform)
 
 
 def renderer(pipeline, lock: Optional[threading.Lock] = None, max_width: Optional[int] = None):
@@ -99,11 +105,15 @@ def client_camera(server, width: int = VIEW_WIDTH) -> Optional[PinholeCamera]:
 class SketchPanel:
     """The SKED folder in the viewer's control panel."""
 
-    def __init__(self, server, session: SketchSession, out: Path) -> None:
+    def __init__(self, server, session: SketchSession, out: Optional[Path]) -> None:
+        """`out`: the folder the Save button writes; None for no Save controls (an edit session saves the set
+        where its round is written)."""
         self.server, self.session = server, session
         self.handles: list = []  # scene nodes of the saved views and the edit box
         self.pending_handle = None  # the frustum of the view being drawn
         self.last_message = ""
+        self.out_text = self.save_button = None
+        self.on_views_changed: Callable[[], None] = lambda: None
         self._capturing = threading.Lock()  # repeated presses while a view renders are ignored
         gui = server.gui
         with gui.add_folder("SKED sketch"):
@@ -115,15 +125,17 @@ class SketchPanel:
             self.clear_button = gui.add_button("Clear mask", disabled=True)
             self.add_button = gui.add_button("Add view", disabled=True)
             self.remove_button = gui.add_button("Remove last view", disabled=True)
-            self.out_text = gui.add_text("Save to", initial_value=str(out))
-            self.save_button = gui.add_button("Save sketch set", disabled=True)
+            if out is not None:
+                self.out_text = gui.add_text("Save to", initial_value=str(out))
+                self.save_button = gui.add_button("Save sketch set", disabled=True)
         self.capture_button.on_click(lambda _: self._guarded(self.capture))
         self.close_button.on_click(lambda _: self._guarded(self.close_scribble))
         self.upload_button.on_upload(lambda event: self._guarded(lambda: self.upload(event.target.value)))
         self.clear_button.on_click(lambda _: self._guarded(self.clear))
         self.add_button.on_click(lambda _: self._guarded(self.add_view))
         self.remove_button.on_click(lambda _: self._guarded(self.remove_last))
-        self.save_button.on_click(lambda _: self._guarded(self.save))
+        if self.save_button is not None:
+            self.save_button.on_click(lambda _: self._guarded(self.save))
 
     # ---- actions (also called directly by tests) ---------------------------------------------
     def capture(self) -> None:
@@ -179,6 +191,25 @@ class SketchPanel:
         self._say(f"{len(self.session.views)} view(s).")
         self._show_coverage()
 
+    def restart(self, session: SketchSession, message: str) -> None:
+        """Draw a new set: `session` replaces the current one, and its views leave the scene."""
+        self.session = session
+        for handle in self.handles + ([self.pending_handle] if self.pending_handle is not None else []):
+            handle.remove()
+        if self.pending_handle is not None:  # a view was being drawn: its clicks stop
+            self.server.scene.remove_pointer_callback()
+        self.handles, self.pending_handle = [], None
+        self._set_drawing(False)
+        self.coverage.content = ""
+        self._say(message)
+
+    def set_enabled(self, enabled: bool) -> None:
+        """Whether views can be captured now (an edit session turns sketching off while a round trains)."""
+        self.capture_button.disabled = not enabled
+        if not enabled:
+            self._set_drawing(False)
+            self.remove_button.disabled = True
+
     def save(self) -> Path:
         path = self.session.save(Path(self.out_text.value))
         # The folder's name only: a long unbreakable path would widen the panel past the window.
@@ -211,7 +242,9 @@ class SketchPanel:
         for button in (self.close_button, self.upload_button, self.clear_button, self.add_button):
             button.disabled = not drawing
         self.remove_button.disabled = not self.session.views
-        self.save_button.disabled = len(self.session.views) < 2
+        if self.save_button is not None:
+            self.save_button.disabled = len(self.session.views) < 2
+        self.on_views_changed()
 
     def _show_pending(self) -> None:
         pending = self.session.pending

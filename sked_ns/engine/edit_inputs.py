@@ -15,6 +15,7 @@ from pathlib import Path
 import torch
 
 from sked_ns.engine.memory_plan import check_memory
+from sked_ns.engine.session import sketches_pending
 from sked_ns.errors import SkedFileNotFoundError, SkedUserError, reading
 from sked_ns.guidance import check_guidance
 from sked_ns.method.options import is_carving
@@ -35,6 +36,9 @@ def check_edit_inputs(config) -> None:
         model.guidance.check_available()  # weights are loaded only at the first step
     if model.sketches is None:
         raise SkedUserError("ns-train sked needs the sketches: --sketches <folder with sketches.json>.")
+    if sketches_pending(config):  # drawn in the viewer: checked, with what follows from them, when saved
+        check_sketches_in_data(config, with_sketches=False)
+        return
     sketch_set = load_sketch_set(model.sketches)
     check_sketch_pixels(sketch_set, model.silhouette_resolution)
     check_sketches_in_data(config)
@@ -50,7 +54,7 @@ def check_devices(machine) -> None:
         raise SkedUserError("--machine.device-type mps: this machine has no Apple GPU. Pass --machine.device-type cpu.")
 
 
-def check_sketches_in_data(config) -> None:
+def check_sketches_in_data(config, with_sketches: bool = True) -> None:
     """The data as its dataparser reads it, and the sketch set in the frame it gives: placed as the model places it
     (model_frame_sketches) and boxed inside its scene box (compute_edit_box), and the base trained in that frame."""
     from sked_ns.engine.base_scene import check_same_frame, dataparser_name, resolve_base
@@ -73,6 +77,8 @@ def check_sketches_in_data(config) -> None:
     check_photos_exist(outputs.image_filenames, f"--data {dataparser.data}")
     if model.base_checkpoint is not None:
         check_same_frame(resolve_base(Path(model.base_checkpoint)), outputs_transform(outputs))
+    if not with_sketches:
+        return
     sketch_set = model_frame_sketches(model.sketches, metadata)
     compute_edit_box(sketch_set.views, scene_box=outputs.scene_box.aabb.numpy())
 

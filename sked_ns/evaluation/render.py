@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Dict
+from typing import Dict, Optional
 
 import torch
 
@@ -78,9 +78,9 @@ def resized_mask(view: SketchView, resolution: int) -> torch.Tensor:
     return sketch_view_at(view, resolution)[1]
 
 
-def load_pipeline(run_dir: Path, device: str = "cpu", flag: str = "--load-dir"):
+def load_pipeline(run_dir: Path, device: str = "cpu", flag: str = "--load-dir", data: Optional[Path] = None):
     """A trained run's pipeline (any method, SKED included) with its latest weights, for rendering; `flag`: how the
-    user named the run, for the error if it is not one."""
+    user named the run, for the error if it is not one; `data`: its dataset, when not where its config.yml says."""
     from sked_ns.engine.base_scene import resolve_base
     from sked_ns.method.options import without_lpips
 
@@ -95,6 +95,8 @@ def load_pipeline(run_dir: Path, device: str = "cpu", flag: str = "--load-dir"):
 
         install_lazy_backend()  # a stock instant-ngp base rendered by a sked-* command gets kernels that build
     run.config.machine.device_type = device
+    if data is not None:
+        run.config.pipeline.datamanager.data = run.config.pipeline.datamanager.dataparser.data = Path(data)
     with without_lpips():
         pipeline = run.config.pipeline.setup(device=device, test_mode="test")
     state = torch.load(run.checkpoint, map_location="cpu")

@@ -1,0 +1,98 @@
+"""The edit session (`ns-train sked` without --sketches): sketch in the viewer, Start edit, Edit again, go back.
+
+The panel's actions are called as its buttons call them, with the browser's camera replaced by sketch cameras of the
+demo scene (tests/drawing/test_browser.py drives the same session through Chromium).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from session_helpers import SessionThread, session_config
+from sked_ns.sketches.sketch_set import load_sketch_set
+
+
+def draw(panel, views, monkeypatch, scale: float = 1.0) -> None:
+    """Capture each view's camera and outline its mask's bounding box (shrunk by `scale`), as clicks would."""
+    import sked_ns.drawing.sketch_viewer as sketch_viewer_module
+    from sked_ns.sketches.cameras import PinholeCamera
+
+    sketch = panel.sketch
+    for view in views:
+        camera = PinholeCamera.from_view(view)
+        monkeypatch.setattr(sketch_viewer_module, "client_camera", lambda server, width=512, c=camera: c)
+        sketch.capture()
+        ys, xs = np.nonzero(view.mask)
+        centre, half = np.array([xs.mean(), ys.mean()]), scale * np.array([np.ptp(xs) + 1, np.ptp(ys) + 1]) / 2
+        for corner in ((-1, -1), (1, -1), (1, 1), (-1, 1)):
+            x, y = (centre + np.array(corner) * half) / np.array([view.width, view.height])
+            sketch.click(float(x), float(y))
+        sketch.add_view()
+
+
+@pytest.fixture(scope="module")
+def tiny_sd_folder(tmp_path_factory):
+    from tiny_sd import build_tiny_stable_diffusion
+
+    return build_tiny_stable_diffusion(tmp_path_factory.mktemp("sd"))
+
+
+def test_a_session_sketches_edits_and_edits_again_then_resumes(scene, tmp_path, tiny_sd_folder, monkeypatch):
+    from sked_ns.demo.scenes import sphere as demo_scene
+    from sked_ns.engine.edit_run import resume_config, run_edit
+
+    config = session_config(scene, tmp_path / "out", tiny_sd_folder)
+    running = SessionThread(config)
+    run = config.get_base_dir()
+    assert not (run / "config.yml").exists(), "config.yml waits for the sketch set it names"
+    session = running.session
+    panel = session.panel
+    try:
+        assert panel.start_button.disabled and "Training waits" in panel.last_message
+        assert panel.prompt() is None and "carves" in panel.prompt_note.content
+        transform = panel.sketch.session.transform
+        hat = demo_scene.SCENES["hat"].sketch_set(size=48).in_model_frame(transform).views
+        draw(panel, hat[:1], monkeypatch)
+        panel._guarded(panel.start)
+        assert "at least two" in panel.last_message and panel.requests.empty()
+        draw(panel, hat[1:], monkeypatch)
+        assert not panel.start_button.disabled
+        panel.prompt_text.value = "a red chef hat"
+        panel._prompt_changed()
+        assert "Stable Diffusion" in panel.prompt_note.content
+        panel.start()
+        running.wait(lambda: len(session.rounds) == 1, "round 1")
+        saved = yaml.load((run / "config.yml").read_text(), Loader=yaml.Loader)
+        assert Path(saved.pipeline.model.sketches) == run / "sketches" and saved.pipeline.model.prompt == "a red chef hat"
+        assert len(load_sketch_set(run / "sketches").views) == 2
+        running.wait(lambda: "is done" in panel.last_message, "round 1's steps")
+        assert sorted(p.name for p in (run / "nerfstudio_models").glob("*.ckpt"))[-1] == "step-000000003.ckpt"
+
+        panel.edit_again()
+        assert panel.source.visible and panel.source.value == "round 1" and panel.sketch.session.views == []
+        assert panel.prompt() == "a red chef hat", "the last prompt stays"
+        draw(panel, hat, monkeypatch, scale=0.5)
+        panel.prompt_text.value = ""
+        panel.start()
+        running.wait(lambda: len(session.rounds) == 2, "round 2")
+        running.wait(lambda: "is done" in panel.last_message, "round 2's steps")
+        second = session.rounds[1]
+        assert second == run.parent / f"{run.name}_round2"
+        saved = yaml.load((second / "config.yml").read_text(), Loader=yaml.Loader)
+        assert saved.pipeline.model.prompt is None, "an empty prompt carves"
+        assert Path(saved.pipeline.model.base_checkpoint).parent == run / "nerfstudio_models", "round 1's result"
+        assert load_sketch_set(second / "sketches").views[0].mask.sum() < load_sketch_set(run / "sketches").views[0].mask.sum()
+        assert "round 2" in panel.rounds_text.content and panel.source.options[0] == "round 2"
+    finally:
+        running.close()
+
+    # The saved round resumes from the command line's config, with its own sketches and prompt.
+    config = resume_config(second, iterations=6)
+    config.vis = "tensorboard"
+    resumed = run_edit(config)
+    assert Path(resumed.config.load_dir) == second / "nerfstudio_models" and resumed._start_step == 4
+    assert Path(resumed.config.pipeline.model.sketches) == second / "sketches"
