@@ -79,4 +79,7 @@ class SessionThread:
         for folder in self.session.rounds:
             release(folder)
         assert not self.thread.is_alive(), "the session ended"
-        self._raise_failure()
+        from sked_ns.engine.session import SessionClosed
+
+        if self.failure and not isinstance(self.failure[0], SessionClosed):
+            raise self.failure[0]

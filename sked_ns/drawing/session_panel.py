@@ -48,6 +48,7 @@ class SessionPanel:
         self.on_edit_again: Callable[[], None] = lambda: None  # the session pauses the round being trained
         self.on_start: Callable[[], None] = lambda: None  # ... and ends it when the next one is asked for
         self.last_message = ""
+        self.sketching = True  # a set is being drawn (before round 1, after Edit again); else a round trains
         self._lock = threading.Lock()  # one press handled at a time
         gui = server.gui
         with gui.add_folder("SKED session"):
@@ -81,7 +82,7 @@ class SessionPanel:
         sketches.edit_box()  # sketches that do not meet in 3D: refused here, with the views kept to fix
         source = None if self.source.value == BASE_CHOICE else int(self.source.value.split()[-1])
         request = StartRequest(sketches=sketches, prompt=self.prompt(), source=source)
-        self.start_button.disabled = True
+        self.sketching = False
         self.sketch.set_enabled(False)
         self._say("Starting the edit...")
         self.requests.put(request)
@@ -91,6 +92,7 @@ class SessionPanel:
     def edit_again(self) -> None:
         """Sketch a new region over the scene as it is now; the round being trained pauses."""
         self.on_edit_again()
+        self.sketching = True
         self.again_button.disabled = True
         self.source.visible = True
         self.sketch.restart(self.new_sketches(), "Move to a view of the new region, then **Capture view**.")
@@ -122,13 +124,14 @@ class SessionPanel:
 
     def refused(self, message: str) -> None:
         """The session could not start the round: say why, and let the user fix the sketches or the prompt."""
+        self.sketching = True
         self.sketch.set_enabled(True)
         self.sketch._set_drawing(False)
         self._say(f"**Error:** {message}")
 
     # ---- display ------------------------------------------------------------------------
     def _views_changed(self) -> None:
-        self.start_button.disabled = len(self.sketch.session.views) < 2
+        self.start_button.disabled = not self.sketching or len(self.sketch.session.views) < 2
 
     def _prompt_changed(self) -> None:
         self.prompt_note.content = PROMPT_NOTE if self.prompt() else CARVE_NOTE

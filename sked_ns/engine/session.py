@@ -50,6 +50,10 @@ def sketches_pending(config: "SkedTrainerConfig") -> bool:
             and not (Path(sketches) / SKETCHES_JSON).exists())
 
 
+class SessionClosed(Exception):
+    """`close` before the first Start edit: nothing to train."""
+
+
 class EditSession:
     """The viewer, the session panel and the rounds; the first round's trainer drives it from ns-train's thread."""
 
@@ -88,9 +92,6 @@ class EditSession:
         self.trainer: "SkedTrainer" = trainer  # the round being trained
         self._installed: list = []  # the current round's model controls in the viewer
         self._last_progress = 0.0
-        url = self.viewer.viewer_info[0] if self.viewer.viewer_info else "the viewer"
-        CONSOLE.print(f"[bold]SKED session:[/bold] {url}. Training waits for a sketch set: draw it in the viewer's "
-                      "SKED panel and press Start edit.")
 
     @property
     def model(self):
@@ -101,6 +102,9 @@ class EditSession:
     def start_first_round(self) -> None:
         """Wait for Start edit; save the set and config.yml in ns-train's run folder (refusals go back to the panel)."""
         config = self.first.config
+        url = self.viewer.viewer_info[0] if self.viewer.viewer_info else "the viewer"
+        CONSOLE.print(f"[bold]SKED session:[/bold] {url}. Training waits for a sketch set: draw it in the viewer's "
+                      "SKED panel and press Start edit.")
         while True:
             request = self._next_request()
             try:
@@ -116,6 +120,22 @@ class EditSession:
             self.first.training_state = "training"
             self._round_started(config)
             return
+
+    def abandon(self) -> None:
+        """Ctrl+c (or `close`) before the first Start edit: the run folder ns-train took holds no run; remove what
+        was put there (the lock, the viewer's log, the empty checkpoint folder), and the folder when nothing else is."""
+        from sked_ns.run_lock import LOCK_NAME
+
+        config = self.first.config
+        run = config.get_base_dir()
+        if (run / "config.yml").exists():
+            return
+        release(run)
+        for name in (LOCK_NAME, config.viewer.relative_log_filename):
+            (run / name).unlink(missing_ok=True)
+        for folder in (config.get_checkpoint_dir(), run):
+            with contextlib.suppress(OSError):  # not empty: something else is there, left alone
+                folder.rmdir()
 
     # ---- rounds after the first ---------------------------------------------------------------
     def run_rounds(self, trainer: "SkedTrainer") -> None:
@@ -264,9 +284,10 @@ class EditSession:
             self.trainer.stop_training = True
 
     def _next_request(self) -> "StartRequest":
-        while True:
+        while not self.closed:
             with contextlib.suppress(queue.Empty):
                 return self.panel.requests.get(timeout=0.1)
+        raise SessionClosed("the session was closed before its first round")
 
     def _take_request(self) -> Optional["StartRequest"]:
         with contextlib.suppress(queue.Empty):

@@ -34,7 +34,7 @@ from sked_ns.method.frozen_base import base_implementation
 from sked_ns.method.options import SkedOptions, copy_base_architecture
 from sked_ns.models.registry import representation_of
 from sked_ns.engine.edit_inputs import check_edit_inputs
-from sked_ns.engine.session import EditSession, session_sketches, sketches_pending
+from sked_ns.engine.session import EditSession, SessionClosed, session_sketches, sketches_pending
 from sked_ns.method.validation import check_options
 
 
@@ -218,7 +218,11 @@ class SkedTrainer(Trainer):
         resolve_edit(self.config)
         if sketches_pending(self.config):  # the viewer opens on the base; training waits for the sketch set
             self.session = EditSession(self)
-            self.session.start_first_round()
+            try:
+                self.session.start_first_round()
+            except (KeyboardInterrupt, SessionClosed):
+                self.session.abandon()
+                raise
         self.skipped_steps = 0
         # fp16 on CUDA; tests set it on the CPU (where nerfstudio turns mixed precision off) to prove fp16 safety.
         self.autocast_dtype = torch.float16 if self.device.startswith("cuda") else torch.bfloat16

@@ -8,6 +8,7 @@ back, and keeps a screenshot in test-artifacts/ (or $SKED_TEST_ARTIFACTS).
 from __future__ import annotations
 
 import os
+import re
 import shutil
 import socket
 import threading
@@ -136,3 +137,144 @@ def test_sketch_panel_in_a_real_browser(scene, tmp_path):
         height, width = rows.ptp() + 1, cols.ptp() + 1
         assert 0.5 < height / width < 2 and view.mask.sum() > 0.8 * height * width, "the clicked square, filled"
     assert (ARTIFACTS / "sked_sketch_panel.png").stat().st_size > 10_000
+
+
+def _draw_view(page, server, panel, position, square) -> None:
+    """Move the browser's camera to `position` (viser units) looking at the origin, capture the view, click the
+    corners of `square` ((x0, y0, x1, y1) as fractions of the canvas), close the outline and add the view."""
+    client = _wait(lambda: next(iter(server.get_clients().values()), None), "the browser to connect")
+    client.camera.position = position
+    client.camera.look_at = (0.0, 0.0, 0.0)
+    time.sleep(1.0)
+    page.get_by_role("button", name="Capture view").click()
+    _wait(lambda: panel.session.pending is not None, "the captured view", timeout=300, panel=panel)
+    page.get_by_text("Click the points").first.wait_for(timeout=120_000)
+    canvas = page.locator('canvas[style*="cursor: pointer"]')
+    canvas.wait_for(timeout=120_000)
+    box = canvas.bounding_box()
+    x0, y0, x1, y1 = square
+    for index, (x, y) in enumerate([(x0, y0), (x1, y0), (x1, y1), (x0, y1)]):
+        _click_until(lambda: page.mouse.click(box["x"] + x * box["width"], box["y"] + y * box["height"]),
+                     lambda n=index + 1: len(panel.session.pending.points) >= n, f"click {index + 1}", panel)
+    page.get_by_role("button", name="Close scribble").click()
+    _wait(lambda: panel.session.pending.mask.any(), "the filled outline", panel=panel)
+    wanted = len(panel.session.views) + 1
+    page.get_by_role("button", name="Add view").click()
+    _wait(lambda: len(panel.session.views) >= wanted, "the added view", panel=panel)
+    page.get_by_text("view(s).").first.wait_for(timeout=120_000)
+
+
+OVERVIEW = (12.0, -16.0, 9.0)
+"""Where the screenshots look from (viser units): the scene, the sketch views' frusta and the edit box."""
+
+
+def _look_from(server, position) -> None:
+    """The browser's camera at `position` (viser units), looking at the origin: the scene and the sketch views."""
+    client = next(iter(server.get_clients().values()))
+    client.camera.position = position
+    client.camera.look_at = (0.0, 0.0, 0.0)
+    time.sleep(3.0)  # the viewer renders the new view
+
+
+def _type_prompt(page, text: str) -> None:
+    field = page.locator("xpath=//*[normalize-space(text())='Prompt']/following::input[1]")
+    field.fill(text)
+    field.press("Enter")
+
+
+def test_edit_session_in_a_real_browser(scene, tmp_path):
+    """`ns-train sked` without --sketches: sketch two views, type the prompt, Start edit, watch the edit advance,
+    Edit again with a second region and no prompt (carve); the saved round resumes from the command line and
+    sked-eval reads it. Screenshots for docs/session.md go to test-artifacts/."""
+    import subprocess
+    import sys
+
+    chromium = _chromium()
+    from playwright.sync_api import sync_playwright
+
+    from session_helpers import SessionThread, session_config
+    from tiny_sd import build_tiny_stable_diffusion
+
+    config = session_config(scene, tmp_path / "out", build_tiny_stable_diffusion(tmp_path / "sd"), iterations=6)
+    port = config.viewer.websocket_port
+    running = SessionThread(config)
+    session = running.session
+    panel, sketch, server = session.panel, session.panel.sketch, session.viewer.viser_server
+    session.viewer.control_panel._max_res.value = 160  # the viewer's own renders, on this CPU, while the edit trains
+    started = time.monotonic()
+
+    def mark(what):
+        print(f"[{time.monotonic() - started:6.1f} s] {what}", flush=True)
+    ARTIFACTS.mkdir(parents=True, exist_ok=True)
+    try:
+        with sync_playwright() as playwright:
+            browser = playwright.chromium.launch(
+                executable_path=chromium, headless=True,
+                args=["--no-sandbox", "--use-angle=swiftshader", "--enable-unsafe-swiftshader", "--ignore-gpu-blocklist"],
+            )
+            page = browser.new_page(viewport={"width": 1200, "height": 800})
+            page.on("dialog", lambda dialog: dialog.dismiss())
+            page.goto(f"http://127.0.0.1:{port}")
+            try:
+                page.get_by_text("Training waits for a sketch set").first.wait_for(timeout=120_000)
+                page.get_by_text("carves the sketched region away").first.wait_for(timeout=60_000)
+                views = ((9.0, -9.0, 4.5), (-9.0, -9.0, 5.5))  # viser units: 10 x nerfstudio's
+                for position in views:
+                    _draw_view(page, server, sketch, position, (0.45, 0.40, 0.55, 0.50))
+                _type_prompt(page, "a red chef hat")
+                _wait(lambda: panel.prompt() == "a red chef hat", "the typed prompt", panel=panel)
+                page.get_by_text("fills the sketched region with the prompt").first.wait_for(timeout=60_000)
+                mark("drawn")
+                _look_from(server, OVERVIEW)
+                page.screenshot(path=str(ARTIFACTS / "session_1_sketched.png"))
+                page.get_by_role("button", name="Start edit").click()
+                running.wait(lambda: len(session.rounds) == 1, "round 1")
+                mark("round 1 set up")
+                _look_from(server, OVERVIEW)
+                page.get_by_text(re.compile(r"step [2-6] of 6")).first.wait_for(timeout=300_000)  # it advances
+                page.screenshot(path=str(ARTIFACTS / "session_2_editing.png"))
+                page.get_by_text("is done and saved").first.wait_for(timeout=300_000)
+                mark("round 1 done")
+
+                page.get_by_role("button", name="Edit again").click()
+                page.get_by_text("Sketch the new region").first.wait_for(timeout=60_000)
+                for position in views:
+                    _draw_view(page, server, sketch, position, (0.46, 0.28, 0.54, 0.36))  # above the first region
+                _type_prompt(page, "")
+                page.get_by_text("carves the sketched region away").first.wait_for(timeout=60_000)
+                _look_from(server, OVERVIEW)
+                mark("drawn again")
+                page.screenshot(path=str(ARTIFACTS / "session_3_edit_again.png"))
+                page.get_by_role("button", name="Start edit").click()
+                running.wait(lambda: len(session.rounds) == 2, "round 2")
+                page.get_by_text("Round 2 is done and saved").first.wait_for(timeout=300_000)
+                _look_from(server, OVERVIEW)
+                page.get_by_text("round 2").first.wait_for(timeout=60_000)
+                page.screenshot(path=str(ARTIFACTS / "session_4_round_2.png"))
+                mark("round 2 done")
+            except Exception:
+                page.screenshot(path=str(ARTIFACTS / "session_failure.png"))
+                raise
+            browser.close()
+    finally:
+        running.close()
+    first, second = session.rounds
+    assert session.prompts == ["a red chef hat", None]
+    assert len(load_sketch_set(first / "sketches").views) == 2 and len(load_sketch_set(second / "sketches").views) == 2
+
+    bin_dir = Path(sys.executable).parent
+    resumed = subprocess.run(
+        [str(bin_dir / "ns-train"), "sked", "--load-dir", str(second), "--max-num-iterations", "8", "--vis", "tensorboard",
+         "--output-dir", str(tmp_path / "resumed")], capture_output=True, text=True, timeout=600)
+    assert resumed.returncode == 0, resumed.stdout[-3000:] + resumed.stderr[-3000:]
+    assert "Resuming the SKED edit" in resumed.stdout
+    mark("resumed")
+    assert list((tmp_path / "resumed").rglob("step-000000007.ckpt")), "the resumed round ran to its new total"
+    evaluated = subprocess.run(
+        [str(bin_dir / "sked-eval"), str(second), "--device", "cpu", "--resolution", "32", "--cameras", "none",
+         "--output", str(tmp_path / "eval.json")], capture_output=True, text=True, timeout=600)
+    assert evaluated.returncode == 0, evaluated.stdout[-3000:] + evaluated.stderr[-3000:]
+    assert "ios" in (tmp_path / "eval.json").read_text().lower()
+    mark("evaluated")
+    for name in ("session_1_sketched", "session_2_editing", "session_3_edit_again", "session_4_round_2"):
+        assert (ARTIFACTS / f"{name}.png").stat().st_size > 10_000

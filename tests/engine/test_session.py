@@ -6,6 +6,12 @@ demo scene (tests/drawing/test_browser.py drives the same session through Chromi
 
 from __future__ import annotations
 
+import os
+import signal
+import subprocess
+import sys
+import time
+import urllib.request
 from pathlib import Path
 
 import numpy as np
@@ -96,3 +102,50 @@ def test_a_session_sketches_edits_and_edits_again_then_resumes(scene, tmp_path, 
     resumed = run_edit(config)
     assert Path(resumed.config.load_dir) == second / "nerfstudio_models" and resumed._start_step == 4
     assert Path(resumed.config.pipeline.model.sketches) == second / "sketches"
+
+
+def _ns_train() -> str:
+    return str(Path(sys.executable).parent / "ns-train")
+
+
+def test_ns_train_without_sketches_opens_the_session_and_ctrl_c_leaves_no_run(scene, tmp_path):
+    """The command line as users type it: the viewer serves, training waits and writes no config.yml; ctrl+c ends
+    the session and removes the run folder it took."""
+    from session_helpers import free_port
+
+    port = free_port()
+    process = subprocess.Popen(
+        [_ns_train(), "sked", "--load-dir", str(scene["base"]), "--machine.device-type", "cpu", "--output-dir",
+         str(tmp_path / "out"), "--viewer.websocket-port", str(port), "nerfstudio-data", "--data", str(scene["data"])],
+        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env={**os.environ, "COLUMNS": "200"})
+    lines = []
+    try:
+        deadline = time.monotonic() + 300
+        while time.monotonic() < deadline:
+            line = process.stdout.readline()
+            assert line or process.poll() is None, "".join(lines)
+            lines.append(line)
+            if "Training waits for a sketch set" in line:
+                break
+        assert any(f"localhost:{port}" in line for line in lines), "".join(lines)
+        with urllib.request.urlopen(f"http://127.0.0.1:{port}", timeout=30) as page:
+            assert page.status == 200
+        runs = list((tmp_path / "out").rglob(".sked-writer.lock"))
+        assert len(runs) == 1 and not (runs[0].parent / "config.yml").exists()
+        process.send_signal(signal.SIGINT)
+        output = process.communicate(timeout=120)[0]
+    finally:
+        process.kill()
+    assert not runs[0].parent.exists(), "the abandoned session leaves no run folder"
+    assert "Traceback" not in output.split("KeyboardInterrupt")[0] or "KeyboardInterrupt" in output, output[-2000:]
+
+
+def test_no_sketches_without_the_viewer_is_refused_naming_both_ways(scene, tmp_path):
+    result = subprocess.run(
+        [_ns_train(), "sked", "--load-dir", str(scene["base"]), "--vis", "tensorboard", "--machine.device-type", "cpu",
+         "--output-dir", str(tmp_path / "out"), "nerfstudio-data", "--data", str(scene["data"])],
+        capture_output=True, text=True, timeout=300)
+    assert result.returncode != 0
+    errors = [line for line in (result.stdout + result.stderr).splitlines() if line.startswith("error:")]
+    assert len(errors) == 1 and "--sketches" in errors[0] and "--vis viewer" in errors[0], errors
+    assert not (tmp_path / "out").exists(), "refused before anything is written"
