@@ -92,6 +92,34 @@ def test_gpu_check_smoke_run_on_the_cpu(tmp_path):
     assert output.with_name("gpu_check_profile.txt").stat().st_size > 1000
 
 
+def test_gpu_check_runs_every_test_file_with_cuda_only_tests():
+    """Its CUDA phase names test files by path: each exists, and no file with a CUDA-only test is left out."""
+    import gpu_check
+
+    tests = BENCHMARKS.parent / "tests"
+    listed = {tests / path for path in gpu_check.CUDA_TESTS}
+    assert all(path.is_file() for path in listed)
+    marker = "@pytest.mark.skipif(not torch.cuda.is_available()"
+    cuda_only = {path for path in tests.rglob("test_*.py")
+                 if marker in path.read_text() and path != Path(__file__).resolve()}  # this file names it only here
+    assert cuda_only and cuda_only <= listed
+
+
+def test_gpu_check_records_the_rasterizer_agreement(tmp_path, monkeypatch):
+    """The splat rasterizer check writes its differences into the results, not only its status."""
+    import gpu_check
+    import splat_agreement
+
+    monkeypatch.setattr(splat_agreement, "compare_with_gsplat",
+                        lambda device: {"image": 2e-6, "image_scale": 1.0, "grad_means": 1e-5, "grad_means_scale": 0.5})
+    check = gpu_check.Check(tmp_path / "gpu_check.json", budget_s=60)
+    check.phase("splat_raster_check", lambda: gpu_check.splat_raster_check(check, "cpu"))
+    written = json.loads((tmp_path / "gpu_check.json").read_text())
+    assert written["phases"]["splat_raster_check"]["status"] == "ok"
+    assert written["splat_raster_check"]["relative"] == {"image": 2e-6, "grad_means": 2e-5}
+    assert written["splat_raster_check"]["worst_relative"] == 2e-5
+
+
 def test_gpu_check_times_steady_iterations_without_the_final_save_and_counts_saves_once():
     """Synthetic clock: a compiling first step, 1 s steps, then nerfstudio's end-of-training save (5 s)."""
     import gpu_check
@@ -112,6 +140,8 @@ def test_gpu_check_times_steady_iterations_without_the_final_save_and_counts_sav
 def test_bare_sd_step_runs_under_the_edits_autocast(tmp_path):
     """The SD floor is timed in the edit's autocast context (dtype included), read inside SkedTrainer's iteration."""
     import torch
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "engine"))  # importable when tests/engine is not run
     from test_nerfstudio_glue import toy_trainer
 
     import sds_iteration
