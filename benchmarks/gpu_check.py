@@ -601,7 +601,7 @@ def main() -> None:
             check.phase("memory", lambda: memory_check(check, args), needs_s=120)
 
     ratios_to_sd_floor(check)
-    # The headline figures (the nerfacto edit) at the top level, as README and issue 10 quote them.
+    # The headline figures (the nerfacto edit) at the top level, as the README quotes them.
     headline = check.result.get("nerfacto", {})
     for key in ("extrapolated_10k_seconds", "compile_seconds", "ms_per_iteration", "ratio_to_sd_floor", "peak_gpu_memory_gb"):
         if key in headline:

@@ -29,8 +29,11 @@ def session_config(scene, output_dir: Path, sd_folder: Path, iterations: int = 4
     Stable Diffusion the tiny one in `sd_folder`."""
     from sked_ns.engine.edit_run import edit_config
 
+    from sked_ns.session.trainer import SessionTrainer
+
     config = edit_config(scene["base"], scene["data"], scene["sketches"], output_dir, iterations=iterations,
                          guidance="stable-diffusion", guidance_resolution=16, silhouette_resolution=16)
+    config._target = SessionTrainer  # what `ns-train sked` runs
     config.sketches = None
     config.pipeline.model.guidance.model = str(sd_folder)
     config.pipeline.model.guidance.image_size = 32
@@ -79,7 +82,7 @@ class SessionThread:
         for folder in self.session.rounds:
             release(folder)
         assert not self.thread.is_alive(), "the session ended"
-        from sked_ns.engine.session import SessionClosed
+        from sked_ns.session.rounds import SessionClosed
 
         if self.failure and not isinstance(self.failure[0], SessionClosed):
             raise self.failure[0]

@@ -15,7 +15,7 @@ from pathlib import Path
 import torch
 
 from sked_ns.engine.memory_plan import check_memory
-from sked_ns.engine.session import sketches_pending
+from sked_ns.engine.drawn_sketches import sketches_pending
 from sked_ns.errors import SkedFileNotFoundError, SkedUserError, reading
 from sked_ns.guidance import check_guidance
 from sked_ns.method.options import is_carving

@@ -16,7 +16,7 @@ import pickle
 import warnings
 from dataclasses import dataclass, field, fields
 from pathlib import Path
-from typing import Optional, Type
+from typing import ClassVar, Optional, Type
 
 import torch
 import yaml
@@ -34,7 +34,7 @@ from sked_ns.method.frozen_base import base_implementation
 from sked_ns.method.options import SkedOptions, copy_base_architecture
 from sked_ns.models.registry import representation_of
 from sked_ns.engine.edit_inputs import check_edit_inputs
-from sked_ns.engine.session import EditSession, SessionClosed, session_sketches, sketches_pending
+from sked_ns.engine.drawn_sketches import draw_sketches_in_viewer, sketches_pending
 from sked_ns.method.validation import check_options
 
 
@@ -138,16 +138,6 @@ def check_run_settings(config: TrainerConfig) -> None:
                       stacklevel=3)
 
 
-def draw_sketches_in_viewer(config: SkedTrainerConfig) -> None:
-    """No --sketches: the user draws them in this run's viewer (an edit session); a run without the viewer is refused."""
-    if not config.is_viewer_enabled():
-        raise SkedUserError(
-            f"--vis {config.vis}: no sketches to edit with. Pass --sketches <folder with sketches.json> (draw one with "
-            "sked-sketch), or leave --sketches out with the viewer on (--vis viewer, the default) to draw them in "
-            "this edit's viewer.")
-    config.pipeline.model.sketches = session_sketches(config)
-
-
 def resume_edit(config: SkedTrainerConfig, base: BaseScene) -> None:
     """Continue the interrupted edit: its saved config, the settable flags typed now, from its latest intact checkpoint."""
     resumed_config(config, base.config, preset_config(config.method_name), base.run_dir)
@@ -204,8 +194,8 @@ def edit_model_config(model, base_model_config):
 
 class SkedTrainer(Trainer):
     config: SkedTrainerConfig
-    session: Optional[EditSession] = None
-    """The viewer session this trainer's round belongs to (no --sketches), else None."""
+    opens_sessions: ClassVar[bool] = False
+    """Whether a run without --sketches may draw them in its viewer (sked_ns.session's trainer does)."""
 
     def __init__(self, config: SkedTrainerConfig, local_rank: int = 0, world_size: int = 1) -> None:
         super().__init__(config, local_rank=local_rank, world_size=world_size)
@@ -216,18 +206,10 @@ class SkedTrainer(Trainer):
 
     def setup(self, test_mode="val") -> None:
         resolve_edit(self.config)
-        if sketches_pending(self.config):  # the viewer opens on the base; training waits for the sketch set
-            self.session = EditSession(self)
-            try:
-                self.session.start_first_round()
-            except (KeyboardInterrupt, SessionClosed):
-                self.session.abandon()
-                raise
         self.skipped_steps = 0
         # fp16 on CUDA; tests set it on the CPU (where nerfstudio turns mixed precision off) to prove fp16 safety.
         self.autocast_dtype = torch.float16 if self.device.startswith("cuda") else torch.bfloat16
-        with self.session.lend_viewer(self) if self.session is not None else contextlib.nullcontext():
-            super().setup(test_mode=test_mode)
+        super().setup(test_mode=test_mode)
         if getattr(self, "viewer_state", None) is not None:
             self._show_sketches_in_viewer()
 
@@ -241,8 +223,6 @@ class SkedTrainer(Trainer):
         model = self.pipeline.model
         server = self.viewer_state.viser_server
         show_sketch_views(server, model.sketch_set.views, model.edit_box)
-        if self.session is not None:  # the session panel lists its rounds instead
-            return
         lines = [f"- view {i}: {v.width}x{v.height}, mask {v.mask.mean():.0%} of the image"
                  for i, v in enumerate(model.sketch_set.views)]
         with server.gui.add_folder("SKED sketches"):
@@ -263,19 +243,9 @@ class SkedTrainer(Trainer):
                                 "--load-step N.") from error
 
     def train(self) -> None:
-        self.train_round()
-        if self.session is not None and self.session.first is self:  # Edit again's rounds, in this process
-            self.session.run_rounds(self)
-
-    def train_round(self) -> None:
         # An edit's length is its total: nerfstudio 1.1.5 runs max_num_iterations more steps after a resume.
         self.config.max_num_iterations = max(self.config.max_num_iterations - self._start_step, 1)
         super().train()
-
-    def _train_complete_viewer(self) -> None:
-        if self.session is None:
-            return super()._train_complete_viewer()
-        self.session.round_finished(self)  # returns when the user starts another round
 
     def setup_optimizers(self) -> GuardedOptimizers:
         return GuardedOptimizers(super().setup_optimizers(), self.step_guard)
@@ -291,8 +261,6 @@ class SkedTrainer(Trainer):
         elif self.step_guard.skipped:
             self._skip(step, [self.step_guard.reason])
         metrics_dict["skipped_steps"] = torch.tensor(float(self.skipped_steps))
-        if self.session is not None:
-            self.session.step_done(self, step)
         return loss, loss_dict, metrics_dict
 
     def _skip(self, step: int, names) -> None:

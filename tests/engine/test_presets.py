@@ -75,7 +75,7 @@ def test_presets_ship_in_the_wheel(tmp_path):
         entry_points = next(archive.read(n).decode() for n in names if n.endswith("entry_points.txt"))
     for name in PRESETS:
         assert f"sked_ns/configs/{name}.yml" in names
-        assert f"{name} = sked_ns.engine.presets:" in entry_points
+        assert f"{name} = sked_ns.session.methods:" in entry_points
     modules = {str(path.relative_to(ROOT)) for path in (ROOT / "sked_ns").rglob("*.py")}
     assert modules - set(names) == set(), "every module of every layer ships (pyproject's package list)"
 

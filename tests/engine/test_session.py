@@ -70,6 +70,14 @@ def test_a_session_sketches_edits_and_edits_again_then_resumes(scene, tmp_path, 
         panel.prompt_text.value = "a red chef hat"
         panel._prompt_changed()
         assert "Stable Diffusion" in panel.prompt_note.content
+        guidance = running.trainer.config.pipeline.model.guidance
+        guidance.model, sd = str(tmp_path / "no-weights"), guidance.model
+        panel.start()  # the edit's own input checks refuse it: said in the panel, the views kept, nothing saved
+        running.wait(lambda: "**Error:**" in panel.last_message, "the refusal")
+        assert "no-weights" in panel.last_message and len(panel.sketch.session.views) == 2
+        assert not (run / "sketches").exists() and not (run / "config.yml").exists() and not session.rounds
+        assert not panel.start_button.disabled
+        guidance.model = sd
         panel.start()
         running.wait(lambda: len(session.rounds) == 1, "round 1")
         saved = yaml.load((run / "config.yml").read_text(), Loader=yaml.Loader)
@@ -77,6 +85,9 @@ def test_a_session_sketches_edits_and_edits_again_then_resumes(scene, tmp_path, 
         assert len(load_sketch_set(run / "sketches").views) == 2
         running.wait(lambda: "is done" in panel.last_message, "round 1's steps")
         assert sorted(p.name for p in (run / "nerfstudio_models").glob("*.ckpt"))[-1] == "step-000000003.ckpt"
+        controls = {element.name for element in session._installed}
+        assert {"SKED show the base (not the edit)", "SKED beta (preservation falloff)"} <= controls
+        assert session.model.viewer_show_base in session._installed, "the controls steer the round being shown"
 
         panel.edit_again()
         assert panel.source.visible and panel.source.value == "round 1" and panel.sketch.session.views == []
@@ -93,6 +104,16 @@ def test_a_session_sketches_edits_and_edits_again_then_resumes(scene, tmp_path, 
         assert Path(saved.pipeline.model.base_checkpoint).parent == run / "nerfstudio_models", "round 1's result"
         assert load_sketch_set(second / "sketches").views[0].mask.sum() < load_sketch_set(run / "sketches").views[0].mask.sum()
         assert "round 2" in panel.rounds_text.content and panel.source.options[0] == "round 2"
+        assert session.model.viewer_show_base in session._installed and len(session._installed) == len(controls)
+
+        panel.edit_again()  # go back: round 3 continues from round 1, not from round 2
+        assert list(panel.source.options) == ["round 2", "round 1", "the base"]
+        draw(panel, hat, monkeypatch, scale=0.5)
+        panel.source.value = "round 1"
+        panel.start()
+        running.wait(lambda: len(session.rounds) == 3, "round 3")
+        saved = yaml.load((session.rounds[2] / "config.yml").read_text(), Loader=yaml.Loader)
+        assert Path(saved.pipeline.model.base_checkpoint).parent == run / "nerfstudio_models", "round 1's result"
     finally:
         running.close()
 

@@ -23,10 +23,11 @@ LAYERS: List[Set[str]] = [
     {"sked_ns.engine"},  # 5: nerfstudio glue: presets, trainer, pipeline, datamanager, base scene, resume
     {"sked_ns.evaluation"},  # 6: rendering saved runs, metrics, sked-eval
     {"sked_ns.drawing"},  # 7: sked-sketch and its panel, the authors' importer
-    {"sked_ns.batch"},  # 8: sked-batch
-    {"sked_ns.demo"},  # 9: sked-demo and its analytic scenes
+    {"sked_ns.session"},  # 8: ns-train sked's trainer and methods: sketch, edit and edit again in one viewer session
+    {"sked_ns.batch"},  # 9: sked-batch
+    {"sked_ns.demo"},  # 10: sked-demo and its analytic scenes
 ]
-MAX_FLOORS = 9
+MAX_FLOORS = 10
 MAX_LINES = 450
 REPRESENTATION_TYPES = {"SplatfactoModel", "SplatfactoModelConfig", "NerfactoModel", "NerfactoModelConfig", "NGPModel",
                         "InstantNGPModelConfig", "SkedSplatModel", "SkedSplatModelConfig", "SkedNerfactoModel",

@@ -1,7 +1,7 @@
 """One viewer session from the base to an edit and back: sketch, edit, look, edit again.
 
 `ns-train sked --load-dir BASE <dataparser>` without --sketches, with the viewer on, opens nerfstudio's viewer on
-the base with the SKED session panel (`sked_ns.drawing.session_panel`), and training waits until the user draws a
+the base with the SKED session panel (`sked_ns.session.panel`), and training waits until the user draws a
 sketch set and presses Start edit. Each Start edit begins a round, a nerfstudio run of its own: round 1 in the run
 folder ns-train made, round k in its sibling `<timestamp>_round<k>`. A round's sketch set is saved in its folder
 (`sketches/`) before its config.yml, which names it, so `ns-train sked --load-dir <round>` resumes the round and
@@ -24,30 +24,18 @@ from typing import TYPE_CHECKING, Iterator, List, Optional
 import torch
 from nerfstudio.utils.rich_utils import CONSOLE
 
+from sked_ns.engine.drawn_sketches import session_sketches
 from sked_ns.errors import SkedUserError
 from sked_ns.run_lock import hold, release
-from sked_ns.sketches.sketch_set import SKETCHES_JSON
 
 if TYPE_CHECKING:
-    from sked_ns.drawing.session_panel import StartRequest
-    from sked_ns.engine.trainer import SkedTrainer, SkedTrainerConfig
+    from sked_ns.engine.trainer import SkedTrainerConfig
+    from sked_ns.session.panel import StartRequest
+    from sked_ns.session.trainer import SessionTrainer
 
-SESSION_SKETCHES = "sketches"
-"""A session round's sketch set: this folder inside the round's run folder."""
 ROUND_HOLD_HINT = "Wait for it to end, or give this edit another --timestamp or --output-dir."
 PROGRESS_SECONDS = 1.0
 """The panel's step count is refreshed at most this often (each refresh is a message to every browser)."""
-
-
-def session_sketches(config: "SkedTrainerConfig") -> Path:
-    return config.get_base_dir() / SESSION_SKETCHES
-
-
-def sketches_pending(config: "SkedTrainerConfig") -> bool:
-    """Whether this run's sketch set is still to be drawn in its viewer (a session's first round before Start edit)."""
-    sketches = config.pipeline.model.sketches
-    return (sketches is not None and Path(sketches) == session_sketches(config)
-            and not (Path(sketches) / SKETCHES_JSON).exists())
 
 
 class SessionClosed(Exception):
@@ -57,10 +45,10 @@ class SessionClosed(Exception):
 class EditSession:
     """The viewer, the session panel and the rounds; the first round's trainer drives it from ns-train's thread."""
 
-    def __init__(self, trainer: "SkedTrainer") -> None:
+    def __init__(self, trainer: "SessionTrainer") -> None:
         from nerfstudio.viewer.viewer import Viewer as ViewerState
 
-        from sked_ns.drawing.session_panel import SessionPanel
+        from sked_ns.session.panel import SessionPanel
         from sked_ns.drawing.sketch_viewer import CPU_PREVIEW_WIDTH, _load, renderer
         from sked_ns.drawing.sketching import SketchSession
 
@@ -89,7 +77,7 @@ class EditSession:
         self.panel = SessionPanel(self.viewer.viser_server, lambda: SketchSession(render, transform, scene_box),
                                   prompt=model.prompt)
         self.panel.on_edit_again, self.panel.on_start = self._pause, self._stop_round
-        self.trainer: "SkedTrainer" = trainer  # the round being trained
+        self.trainer: "SessionTrainer" = trainer  # the round being trained
         self._installed: list = []  # the current round's model controls in the viewer
         self._last_progress = 0.0
 
@@ -138,7 +126,7 @@ class EditSession:
                 folder.rmdir()
 
     # ---- rounds after the first ---------------------------------------------------------------
-    def run_rounds(self, trainer: "SkedTrainer") -> None:
+    def run_rounds(self, trainer: "SessionTrainer") -> None:
         """After a round's training: each Edit again's round, until the user stops the process."""
         while not self.closed:
             request = self._take_request()
@@ -152,7 +140,7 @@ class EditSession:
             trainer = next_trainer
             trainer.train_round()
 
-    def round_finished(self, trainer: "SkedTrainer") -> None:
+    def round_finished(self, trainer: "SessionTrainer") -> None:
         """The round's iterations are done (and saved): wait for Edit again, then Start edit (or `close`)."""
         self._training_buttons(False)
         if self.panel.requests.empty():
@@ -167,13 +155,13 @@ class EditSession:
         """End the session after the round being trained (as ctrl+c does, without interrupting it)."""
         self.closed = True
 
-    def step_done(self, trainer: "SkedTrainer", step: int) -> None:
+    def step_done(self, trainer: "SessionTrainer", step: int) -> None:
         now = time.monotonic()
         if now - self._last_progress >= PROGRESS_SECONDS:
             self._last_progress = now
             self.panel.progress(len(self.rounds), step + 1, trainer.config.max_num_iterations + trainer._start_step)
 
-    def _start_round(self, trainer: "SkedTrainer", request: "StartRequest") -> Optional["SkedTrainer"]:
+    def _start_round(self, trainer: "SessionTrainer", request: "StartRequest") -> Optional["SessionTrainer"]:
         """Round k + 1's config, as if typed: `--load-dir <source> [--progressive True] --sketches <its folder>
         --prompt ...`, with every other setting of the round just trained; its run folder taken, set and config.yml
         written, trainer set up on the session's viewer. None when refused."""
@@ -228,7 +216,7 @@ class EditSession:
 
     # ---- the viewer, lent to each round's trainer -------------------------------------------------
     @contextlib.contextmanager
-    def lend_viewer(self, trainer: "SkedTrainer") -> Iterator[None]:
+    def lend_viewer(self, trainer: "SessionTrainer") -> Iterator[None]:
         """nerfstudio's Trainer.setup makes a viewer; a session's round gets the session's, showing its pipeline."""
         import nerfstudio.engine.trainer as nerfstudio_trainer
 
@@ -295,7 +283,7 @@ class EditSession:
         return None
 
     @staticmethod
-    def _drop(trainer: "SkedTrainer") -> None:
+    def _drop(trainer: "SessionTrainer") -> None:
         """The finished round's model, optimisers and guidance leave the device before the next round's steps."""
         for name in ("pipeline", "optimizers", "callbacks"):
             if hasattr(trainer, name):

@@ -1,7 +1,7 @@
 """The SKED session folder in the viewer: the prompt, Start edit, Edit again and the rounds of an edit session.
 
 It knows nothing about training: pressing **Start edit** hands a `StartRequest` (the drawn sketch set, the prompt and
-the round to start from) to whoever waits on `requests` (`sked_ns.engine.session.EditSession`, on the trainer's
+the round to start from) to whoever waits on `requests` (`sked_ns.session.rounds.EditSession`, on the trainer's
 thread), which answers with `show_round`, `round_done` or `refused`. The sketch tools are `SketchPanel`'s, without
 its Save controls: a session saves each round's set in that round's run folder.
 """

@@ -1,0 +1,60 @@
+"""The trainer of `ns-train sked`: an edit, or with no --sketches an edit session (rounds.py) in its viewer."""
+
+from __future__ import annotations
+
+from typing import ClassVar, Optional
+
+from sked_ns.engine.drawn_sketches import sketches_pending
+from sked_ns.engine.trainer import SkedTrainer, resolve_edit
+from sked_ns.session.rounds import EditSession, SessionClosed
+
+
+class SessionTrainer(SkedTrainer):
+    """SkedTrainer; when the sketches are to be drawn, it opens the session, trains its first round and then each
+    round Edit again asks for (the later rounds' trainers are SessionTrainers of the same session)."""
+
+    opens_sessions: ClassVar[bool] = True
+    session: Optional[EditSession] = None
+    """The session this trainer's round belongs to; None for an edit given --sketches."""
+
+    def setup(self, test_mode="val") -> None:
+        if self.session is None:
+            resolve_edit(self.config)
+            if sketches_pending(self.config):  # the viewer opens on the base; training waits for the sketch set
+                self.session = EditSession(self)
+                try:
+                    self.session.start_first_round()
+                except (KeyboardInterrupt, SessionClosed):
+                    self.session.abandon()
+                    raise
+        if self.session is None:
+            return super().setup(test_mode=test_mode)
+        with self.session.lend_viewer(self):
+            super().setup(test_mode=test_mode)
+
+    def _show_sketches_in_viewer(self) -> None:
+        if self.session is None:
+            return super()._show_sketches_in_viewer()
+        from sked_ns.engine.viewer import show_sketch_views
+
+        model = self.pipeline.model  # the frusta and the edit box; the session panel lists the rounds
+        show_sketch_views(self.viewer_state.viser_server, model.sketch_set.views, model.edit_box)
+
+    def train(self) -> None:
+        self.train_round()
+        if self.session is not None and self.session.first is self:  # Edit again's rounds, in this process
+            self.session.run_rounds(self)
+
+    def train_round(self) -> None:
+        super().train()
+
+    def _train_complete_viewer(self) -> None:
+        if self.session is None:
+            return super()._train_complete_viewer()
+        self.session.round_finished(self)  # returns when the user starts another round (or the session closes)
+
+    def train_iteration(self, step: int):
+        result = super().train_iteration(step)
+        if self.session is not None:
+            self.session.step_done(self, step)
+        return result
