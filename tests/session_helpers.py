@@ -33,7 +33,7 @@ def session_config(scene, output_dir: Path, sd_folder: Path, iterations: int = 4
 
     config = edit_config(scene["base"], scene["data"], scene["sketches"], output_dir, iterations=iterations,
                          guidance="stable-diffusion", guidance_resolution=16, silhouette_resolution=16)
-    config._target = SessionTrainer  # what `ns-train sked` runs
+    config._target = SessionTrainer  # what `ns-train sked` runs (sked_ns.session.methods)
     config.sketches = None
     config.pipeline.model.guidance.model = str(sd_folder)
     config.pipeline.model.guidance.image_size = 32

@@ -24,9 +24,14 @@ from typing import TYPE_CHECKING, Iterator, List, Optional
 import torch
 from nerfstudio.utils.rich_utils import CONSOLE
 
+from sked_ns.drawing.sketch_viewer import CPU_PREVIEW_WIDTH, _load, renderer
+from sked_ns.drawing.sketching import SketchSession
 from sked_ns.engine.drawn_sketches import session_sketches
+from sked_ns.engine.edit_inputs import check_edit_inputs
+from sked_ns.engine.trainer import resolve_edit, save_run_config
 from sked_ns.errors import SkedUserError
-from sked_ns.run_lock import hold, release
+from sked_ns.run_lock import LOCK_NAME, hold, release
+from sked_ns.session.panel import SessionPanel
 
 if TYPE_CHECKING:
     from sked_ns.engine.trainer import SkedTrainerConfig
@@ -47,10 +52,6 @@ class EditSession:
 
     def __init__(self, trainer: "SessionTrainer") -> None:
         from nerfstudio.viewer.viewer import Viewer as ViewerState
-
-        from sked_ns.session.panel import SessionPanel
-        from sked_ns.drawing.sketch_viewer import CPU_PREVIEW_WIDTH, _load, renderer
-        from sked_ns.drawing.sketching import SketchSession
 
         config = trainer.config
         model = config.pipeline.model
@@ -97,10 +98,7 @@ class EditSession:
             request = self._next_request()
             try:
                 self._write_sketches(config, request)
-                from sked_ns.engine.edit_inputs import check_edit_inputs
-                from sked_ns.engine.trainer import save_run_config
-
-                self._checked(config, request, lambda: check_edit_inputs(config))
+                self._checked(config, lambda: check_edit_inputs(config))
                 save_run_config(config)
             except SkedUserError as error:
                 self.panel.refused(str(error))
@@ -108,22 +106,6 @@ class EditSession:
             self.first.training_state = "training"
             self._round_started(config)
             return
-
-    def abandon(self) -> None:
-        """Ctrl+c (or `close`) before the first Start edit: the run folder ns-train took holds no run; remove what
-        was put there (the lock, the viewer's log, the empty checkpoint folder), and the folder when nothing else is."""
-        from sked_ns.run_lock import LOCK_NAME
-
-        config = self.first.config
-        run = config.get_base_dir()
-        if (run / "config.yml").exists():
-            return
-        release(run)
-        for name in (LOCK_NAME, config.viewer.relative_log_filename):
-            (run / name).unlink(missing_ok=True)
-        for folder in (config.get_checkpoint_dir(), run):
-            with contextlib.suppress(OSError):  # not empty: something else is there, left alone
-                folder.rmdir()
 
     # ---- rounds after the first ---------------------------------------------------------------
     def run_rounds(self, trainer: "SessionTrainer") -> None:
@@ -165,8 +147,6 @@ class EditSession:
         """Round k + 1's config, as if typed: `--load-dir <source> [--progressive True] --sketches <its folder>
         --prompt ...`, with every other setting of the round just trained; its run folder taken, set and config.yml
         written, trainer set up on the session's viewer. None when refused."""
-        from sked_ns.engine.trainer import resolve_edit
-
         config: "SkedTrainerConfig" = copy.deepcopy(trainer.config)
         config.timestamp = f"{self.timestamp}_round{len(self.rounds) + 1}"
         source = self.base if request.source is None else self.rounds[request.source - 1]
@@ -177,10 +157,10 @@ class EditSession:
         try:
             hold(config.get_base_dir(), ROUND_HOLD_HINT)
             self._write_sketches(config, request)
-            self._checked(config, request, lambda: resolve_edit(config))
+            self._checked(config, lambda: resolve_edit(config))
             config.save_config()
         except SkedUserError as error:
-            release(config.get_base_dir())
+            abandon_unstarted(config)
             self.panel.refused(str(error))
             return None
         next_trainer = config.setup(local_rank=0, world_size=1)
@@ -200,7 +180,8 @@ class EditSession:
         request.sketches.save(folder)
         config.prompt = config.pipeline.model.prompt = request.prompt
 
-    def _checked(self, config, request, check) -> None:
+    @staticmethod
+    def _checked(config, check) -> None:
         """Run the edit's input checks on the saved set; a refused set is removed (it never made a round)."""
         try:
             check()
@@ -291,3 +272,17 @@ class EditSession:
         gc.collect()
         if torch.cuda.is_available():
             torch.cuda.empty_cache()
+
+
+def abandon_unstarted(config: "SkedTrainerConfig") -> None:
+    """A round that never started (ctrl+c or an error before its config.yml): its run folder holds no run; remove what
+    was put there (the lock, the viewer's log, the empty checkpoint folder), and the folder when nothing else is."""
+    run = config.get_base_dir()
+    if (run / "config.yml").exists():
+        return
+    release(run)
+    for name in (LOCK_NAME, config.viewer.relative_log_filename):
+        (run / name).unlink(missing_ok=True)
+    for folder in (config.get_checkpoint_dir(), run):
+        with contextlib.suppress(OSError):  # not empty: something else is there, left alone
+            folder.rmdir()

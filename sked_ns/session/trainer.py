@@ -2,11 +2,19 @@
 
 from __future__ import annotations
 
-from typing import ClassVar, Optional
+from dataclasses import dataclass, field
+from typing import ClassVar, Optional, Type
 
 from sked_ns.engine.drawn_sketches import sketches_pending
-from sked_ns.engine.trainer import SkedTrainer, resolve_edit
-from sked_ns.session.rounds import EditSession, SessionClosed
+from sked_ns.engine.trainer import SkedTrainer, SkedTrainerConfig, resolve_edit
+from sked_ns.session.rounds import EditSession, abandon_unstarted
+
+
+@dataclass
+class SessionTrainerConfig(SkedTrainerConfig):
+    """`ns-train sked`'s config: a SkedTrainerConfig whose trainer opens a session when --sketches is left out."""
+
+    _target: Type = field(default_factory=lambda: SessionTrainer)
 
 
 class SessionTrainer(SkedTrainer):
@@ -21,11 +29,11 @@ class SessionTrainer(SkedTrainer):
         if self.session is None:
             resolve_edit(self.config)
             if sketches_pending(self.config):  # the viewer opens on the base; training waits for the sketch set
-                self.session = EditSession(self)
                 try:
+                    self.session = EditSession(self)
                     self.session.start_first_round()
-                except (KeyboardInterrupt, SessionClosed):
-                    self.session.abandon()
+                except BaseException:  # ctrl+c, or the base would not load: no run was started
+                    abandon_unstarted(self.config)
                     raise
         if self.session is None:
             return super().setup(test_mode=test_mode)
