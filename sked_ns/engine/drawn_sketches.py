@@ -7,30 +7,26 @@ drawn in the viewer and saved in the run folder, and only then checked and used 
 from __future__ import annotations
 
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 from sked_ns.errors import SkedUserError
 from sked_ns.sketches.sketch_set import SKETCHES_JSON
-
-if TYPE_CHECKING:
-    from sked_ns.engine.trainer import SkedTrainerConfig
 
 SESSION_SKETCHES = "sketches"
 """A session round's sketch set: this folder inside the round's run folder."""
 
 
-def session_sketches(config: "SkedTrainerConfig") -> Path:
+def session_sketches(config) -> Path:
     return config.get_base_dir() / SESSION_SKETCHES
 
 
-def sketches_pending(config: "SkedTrainerConfig") -> bool:
+def sketches_pending(config) -> bool:
     """Whether this run's sketch set is still to be drawn in its viewer (a session's first round before Start edit)."""
     sketches = config.pipeline.model.sketches
     return (sketches is not None and Path(sketches) == session_sketches(config)
             and not (Path(sketches) / SKETCHES_JSON).exists())
 
 
-def draw_sketches_in_viewer(config: "SkedTrainerConfig") -> None:
+def draw_sketches_in_viewer(config) -> None:
     """No --sketches: the user draws them in this run's viewer (a session); without the viewer, or with a trainer that
     opens no session (an edit built from Python), it is refused."""
     if not (config.is_viewer_enabled() and getattr(config._target, "opens_sessions", False)):

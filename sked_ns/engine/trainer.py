@@ -108,9 +108,9 @@ def resolve_edit(config: SkedTrainerConfig) -> None:
             resume_edit(config, base)
         else:
             start_edit(config, base)
+            if config.pipeline.model.sketches is None:  # a new edit without --sketches: drawn in its viewer
+                draw_sketches_in_viewer(config)
         check_data(config, base)
-    if config.pipeline.model.sketches is None:  # the model config resolved from the base (or the resumed edit)
-        draw_sketches_in_viewer(config)
     check_edit_inputs(config)  # everything the edit will read, before anything is written
     # Learning rates decay to 0.1x by the end of this edit (docs/method.md, Optimisation), however long --max-num-iterations makes it.
     for optimizer in config.optimizers.values():

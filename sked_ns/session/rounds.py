@@ -19,7 +19,7 @@ import queue
 import shutil
 import time
 from pathlib import Path
-from typing import TYPE_CHECKING, Iterator, List, Optional
+from typing import Iterator, List, Optional
 
 import torch
 from nerfstudio.utils.rich_utils import CONSOLE
@@ -28,15 +28,11 @@ from sked_ns.drawing.sketch_viewer import CPU_PREVIEW_WIDTH, _load, renderer
 from sked_ns.drawing.sketching import SketchSession
 from sked_ns.engine.drawn_sketches import session_sketches
 from sked_ns.engine.edit_inputs import check_edit_inputs
-from sked_ns.engine.trainer import resolve_edit, save_run_config
+from sked_ns.engine.trainer import SkedTrainer, SkedTrainerConfig, resolve_edit, save_run_config
 from sked_ns.errors import SkedUserError
 from sked_ns.run_lock import LOCK_NAME, hold, release
-from sked_ns.session.panel import SessionPanel
+from sked_ns.session.panel import SessionPanel, StartRequest
 
-if TYPE_CHECKING:
-    from sked_ns.engine.trainer import SkedTrainerConfig
-    from sked_ns.session.panel import StartRequest
-    from sked_ns.session.trainer import SessionTrainer
 
 ROUND_HOLD_HINT = "Wait for it to end, or give this edit another --timestamp or --output-dir."
 PROGRESS_SECONDS = 1.0
@@ -50,7 +46,7 @@ class SessionClosed(Exception):
 class EditSession:
     """The viewer, the session panel and the rounds; the first round's trainer drives it from ns-train's thread."""
 
-    def __init__(self, trainer: "SessionTrainer") -> None:
+    def __init__(self, trainer: SkedTrainer) -> None:
         from nerfstudio.viewer.viewer import Viewer as ViewerState
 
         config = trainer.config
@@ -78,7 +74,7 @@ class EditSession:
         self.panel = SessionPanel(self.viewer.viser_server, lambda: SketchSession(render, transform, scene_box),
                                   prompt=model.prompt)
         self.panel.on_edit_again, self.panel.on_start = self._pause, self._stop_round
-        self.trainer: "SessionTrainer" = trainer  # the round being trained
+        self.trainer: SkedTrainer = trainer  # the round being trained
         self._installed: list = []  # the current round's model controls in the viewer
         self._last_progress = 0.0
 
@@ -108,7 +104,7 @@ class EditSession:
             return
 
     # ---- rounds after the first ---------------------------------------------------------------
-    def run_rounds(self, trainer: "SessionTrainer") -> None:
+    def run_rounds(self, trainer: SkedTrainer) -> None:
         """After a round's training: each Edit again's round, until the user stops the process."""
         while not self.closed:
             request = self._take_request()
@@ -122,7 +118,7 @@ class EditSession:
             trainer = next_trainer
             trainer.train_round()
 
-    def round_finished(self, trainer: "SessionTrainer") -> None:
+    def round_finished(self, trainer: SkedTrainer) -> None:
         """The round's iterations are done (and saved): wait for Edit again, then Start edit (or `close`)."""
         self._training_buttons(False)
         if self.panel.requests.empty():
@@ -137,17 +133,17 @@ class EditSession:
         """End the session after the round being trained (as ctrl+c does, without interrupting it)."""
         self.closed = True
 
-    def step_done(self, trainer: "SessionTrainer", step: int) -> None:
+    def step_done(self, trainer: SkedTrainer, step: int) -> None:
         now = time.monotonic()
         if now - self._last_progress >= PROGRESS_SECONDS:
             self._last_progress = now
             self.panel.progress(len(self.rounds), step + 1, trainer.config.max_num_iterations + trainer._start_step)
 
-    def _start_round(self, trainer: "SessionTrainer", request: "StartRequest") -> Optional["SessionTrainer"]:
+    def _start_round(self, trainer: SkedTrainer, request: StartRequest) -> Optional[SkedTrainer]:
         """Round k + 1's config, as if typed: `--load-dir <source> [--progressive True] --sketches <its folder>
         --prompt ...`, with every other setting of the round just trained; its run folder taken, set and config.yml
         written, trainer set up on the session's viewer. None when refused."""
-        config: "SkedTrainerConfig" = copy.deepcopy(trainer.config)
+        config: SkedTrainerConfig = copy.deepcopy(trainer.config)
         config.timestamp = f"{self.timestamp}_round{len(self.rounds) + 1}"
         source = self.base if request.source is None else self.rounds[request.source - 1]
         config.load_dir, config.load_step, config.load_checkpoint = source, None, None
@@ -173,7 +169,7 @@ class EditSession:
         self._round_started(config)
         return next_trainer
 
-    def _write_sketches(self, config: "SkedTrainerConfig", request: "StartRequest") -> None:
+    def _write_sketches(self, config: SkedTrainerConfig, request: StartRequest) -> None:
         folder = session_sketches(config)
         if folder.exists():  # a refused attempt of this round: the session wrote it, nothing else does
             shutil.rmtree(folder)
@@ -189,7 +185,7 @@ class EditSession:
             shutil.rmtree(session_sketches(config), ignore_errors=True)
             raise
 
-    def _round_started(self, config: "SkedTrainerConfig") -> None:
+    def _round_started(self, config: SkedTrainerConfig) -> None:
         self.rounds.append(config.get_base_dir())
         self.prompts.append(config.pipeline.model.prompt)
         self.panel.show_round(len(self.rounds), config.get_base_dir(), config.pipeline.model.prompt)
@@ -197,7 +193,7 @@ class EditSession:
 
     # ---- the viewer, lent to each round's trainer -------------------------------------------------
     @contextlib.contextmanager
-    def lend_viewer(self, trainer: "SessionTrainer") -> Iterator[None]:
+    def lend_viewer(self, trainer: SkedTrainer) -> Iterator[None]:
         """nerfstudio's Trainer.setup makes a viewer; a session's round gets the session's, showing its pipeline."""
         import nerfstudio.engine.trainer as nerfstudio_trainer
 
@@ -252,19 +248,19 @@ class EditSession:
         if self.rounds:
             self.trainer.stop_training = True
 
-    def _next_request(self) -> "StartRequest":
+    def _next_request(self) -> StartRequest:
         while not self.closed:
             with contextlib.suppress(queue.Empty):
                 return self.panel.requests.get(timeout=0.1)
         raise SessionClosed("the session was closed before its first round")
 
-    def _take_request(self) -> Optional["StartRequest"]:
+    def _take_request(self) -> Optional[StartRequest]:
         with contextlib.suppress(queue.Empty):
             return self.panel.requests.get_nowait()
         return None
 
     @staticmethod
-    def _drop(trainer: "SessionTrainer") -> None:
+    def _drop(trainer: SkedTrainer) -> None:
         """The finished round's model, optimisers and guidance leave the device before the next round's steps."""
         for name in ("pipeline", "optimizers", "callbacks"):
             if hasattr(trainer, name):
@@ -274,7 +270,7 @@ class EditSession:
             torch.cuda.empty_cache()
 
 
-def abandon_unstarted(config: "SkedTrainerConfig") -> None:
+def abandon_unstarted(config: SkedTrainerConfig) -> None:
     """A round that never started (ctrl+c or an error before its config.yml): its run folder holds no run; remove what
     was put there (the lock, the viewer's log, the empty checkpoint folder), and the folder when nothing else is."""
     run = config.get_base_dir()
