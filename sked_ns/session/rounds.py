@@ -28,7 +28,7 @@ from sked_ns.drawing.sketch_viewer import CPU_PREVIEW_WIDTH, _load, renderer
 from sked_ns.drawing.sketching import SketchSession
 from sked_ns.engine.drawn_sketches import session_sketches
 from sked_ns.engine.edit_inputs import check_edit_inputs
-from sked_ns.engine.trainer import SkedTrainer, SkedTrainerConfig, resolve_edit, save_run_config
+from sked_ns.engine.trainer import SkedTrainer, SkedTrainerConfig, save_run_config
 from sked_ns.errors import SkedUserError
 from sked_ns.run_lock import LOCK_NAME, hold, release
 from sked_ns.session.panel import SessionPanel, StartRequest
@@ -111,8 +111,9 @@ class EditSession:
             if request is None:
                 return
             next_trainer = self._start_round(trainer, request)
-            if next_trainer is None:
-                continue  # refused: the panel says why, and the user sketches again
+            if next_trainer is None:  # refused: the panel says why; the user fixes the set and presses Start again
+                self._wait_for_request()
+                continue
             release(trainer.base_dir)  # that round's run is complete: another process may resume it
             self._drop(trainer)
             trainer = next_trainer
@@ -124,6 +125,9 @@ class EditSession:
         if self.panel.requests.empty():
             self.panel.round_done(len(self.rounds), trainer.base_dir)
             CONSOLE.print("SKED session: the round is saved; Edit again in the viewer starts another (ctrl+c quits).")
+        self._wait_for_request()
+
+    def _wait_for_request(self) -> None:
         while self.panel.requests.empty() and not self.closed:
             time.sleep(0.1)
 
@@ -153,8 +157,7 @@ class EditSession:
         try:
             hold(config.get_base_dir(), ROUND_HOLD_HINT)
             self._write_sketches(config, request)
-            self._checked(config, lambda: resolve_edit(config))
-            config.save_config()
+            self._checked(config, config.save_config)  # resolves the round from its source, checks, writes config.yml
         except SkedUserError as error:
             abandon_unstarted(config)
             self.panel.refused(str(error))

@@ -110,6 +110,14 @@ def test_a_session_sketches_edits_and_edits_again_then_resumes(scene, tmp_path, 
         assert list(panel.source.options) == ["round 2", "round 1", "the base"]
         draw(panel, hat, monkeypatch, scale=0.5)
         panel.source.value = "round 1"
+        panel.prompt_text.value = "a red chef hat"
+        guidance = session.trainer.config.pipeline.model.guidance  # the settings the next round copies
+        guidance.model, sd = str(tmp_path / "no-weights"), guidance.model
+        panel.start()  # refused after round 2 ended: the session waits for the next Start edit
+        running.wait(lambda: "**Error:**" in panel.last_message, "the refusal of round 3")
+        assert "no-weights" in panel.last_message and len(session.rounds) == 2 and running.thread.is_alive()
+        assert not (run.parent / f"{run.name}_round3").exists(), "a refused round leaves no run folder"
+        guidance.model = sd
         panel.start()
         running.wait(lambda: len(session.rounds) == 3, "round 3")
         saved = yaml.load((session.rounds[2] / "config.yml").read_text(), Loader=yaml.Loader)
