@@ -205,9 +205,9 @@ class SketchPanel:
 
     def set_enabled(self, enabled: bool) -> None:
         """Whether views can be captured now (an edit session turns sketching off while a round trains)."""
+        self._set_drawing(False)
         self.capture_button.disabled = not enabled
         if not enabled:
-            self._set_drawing(False)
             self.remove_button.disabled = True
 
     def save(self) -> Path:
@@ -218,13 +218,7 @@ class SketchPanel:
 
     # ---- display ------------------------------------------------------------------------
     def _guarded(self, action) -> None:
-        try:
-            action()
-        except (ValueError, FileExistsError) as error:
-            self._say(f"**Error:** {error}")
-        except Exception as error:  # a callback thread would swallow it: show it in the panel
-            self._say(f"**Unexpected error:** {type(error).__name__}: {error}")
-            raise
+        guarded(action, self._say)
 
     def _say(self, message: str) -> None:
         self.status.content = message
@@ -261,6 +255,18 @@ class SketchPanel:
         images = [self.session.view_image(index) for index in range(len(self.session.views))]
         self.handles = show_sketch_views(self.server, self.session.views, self.session.edit_box(), images=images)
         self._set_drawing(False)
+
+
+def guarded(action: Callable[[], object], say: Callable[[str], None]) -> None:
+    """A panel button's action: a user's mistake (ValueError, FileExistsError) is said in the panel; anything else
+    too, and raised (a callback thread would swallow it)."""
+    try:
+        action()
+    except (ValueError, FileExistsError) as error:
+        say(f"**Error:** {error}")
+    except Exception as error:
+        say(f"**Unexpected error:** {type(error).__name__}: {error}")
+        raise
 
 
 def start_viewer(run: Path, out: Path, port: Optional[int] = None, device: str = "cpu", flag: str = "sked-sketch"):

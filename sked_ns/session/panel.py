@@ -14,7 +14,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, List, Optional
 
-from sked_ns.drawing.sketch_viewer import SketchPanel
+from sked_ns.drawing.sketch_viewer import SketchPanel, guarded
 from sked_ns.drawing.sketching import SketchSession
 
 CARVE_NOTE = "No prompt: **Start edit** carves the sketched region away."
@@ -126,7 +126,6 @@ class SessionPanel:
         """The session could not start the round: say why, and let the user fix the sketches or the prompt."""
         self.sketching = True
         self.sketch.set_enabled(True)
-        self.sketch._set_drawing(False)
         self._say(f"**Error:** {message}")
 
     # ---- display ------------------------------------------------------------------------
@@ -138,13 +137,7 @@ class SessionPanel:
 
     def _guarded(self, action) -> None:
         with self._lock:
-            try:
-                action()
-            except (ValueError, FileExistsError) as error:
-                self._say(f"**Error:** {error}")
-            except Exception as error:  # a callback thread would swallow it: show it in the panel
-                self._say(f"**Unexpected error:** {type(error).__name__}: {error}")
-                raise
+            guarded(action, self._say)
 
     def _say(self, message: str) -> None:
         self.status.content = message

@@ -54,7 +54,6 @@ class EditSession:
         self.first = trainer
         self.timestamp = config.timestamp
         self.rounds: List[Path] = []  # round k's run folder at k - 1
-        self.prompts: List[Optional[str]] = []
         self.base = Path(model.base_checkpoint)
         self.lock = trainer.train_lock  # one lock for every round: the viewer renders under it
         datamanager = config.pipeline.datamanager
@@ -117,7 +116,7 @@ class EditSession:
             release(trainer.base_dir)  # that round's run is complete: another process may resume it
             self._drop(trainer)
             trainer = next_trainer
-            trainer.train_round()
+            trainer.train()
 
     def round_finished(self, trainer: SkedTrainer) -> None:
         """The round's iterations are done (and saved): wait for Edit again, then Start edit (or `close`)."""
@@ -173,10 +172,7 @@ class EditSession:
         return next_trainer
 
     def _write_sketches(self, config: SkedTrainerConfig, request: StartRequest) -> None:
-        folder = session_sketches(config)
-        if folder.exists():  # a refused attempt of this round: the session wrote it, nothing else does
-            shutil.rmtree(folder)
-        request.sketches.save(folder)
+        request.sketches.save(session_sketches(config))  # refuses a set already there (a refused one was removed)
         config.prompt = config.pipeline.model.prompt = request.prompt
 
     @staticmethod
@@ -190,7 +186,6 @@ class EditSession:
 
     def _round_started(self, config: SkedTrainerConfig) -> None:
         self.rounds.append(config.get_base_dir())
-        self.prompts.append(config.pipeline.model.prompt)
         self.panel.show_round(len(self.rounds), config.get_base_dir(), config.pipeline.model.prompt)
         CONSOLE.print(f"SKED session: round {len(self.rounds)} in {config.get_base_dir()}")
 

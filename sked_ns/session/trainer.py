@@ -49,12 +49,9 @@ class SessionTrainer(SkedTrainer):
         show_sketch_views(self.viewer_state.viser_server, model.sketch_set.views, model.edit_box)
 
     def train(self) -> None:
-        self.train_round()
+        super().train()
         if self.session is not None and self.session.first is self:  # Edit again's rounds, in this process
             self.session.run_rounds(self)
-
-    def train_round(self) -> None:
-        super().train()
 
     def _train_complete_viewer(self) -> None:
         if self.session is None:

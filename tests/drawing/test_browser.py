@@ -9,15 +9,17 @@ from __future__ import annotations
 
 import os
 import re
+import contextlib
 import shutil
-import socket
 import threading
 import time
 from pathlib import Path
 
 import numpy as np
 import pytest
+import yaml
 
+from session_helpers import free_port, wait_for
 from sked_ns.sketches.sketch_set import load_sketch_set
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -35,92 +37,59 @@ def _chromium() -> str:
     return path
 
 
-def _free_port() -> int:
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        return sock.getsockname()[1]
-
-
-def _wait(condition, what: str, timeout: float = 120.0, panel=None):
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        value = condition()
-        if value:
-            return value
-        time.sleep(0.2)
-    raise AssertionError(f"timed out waiting for {what}" + (f"; the panel says: {panel.last_message}" if panel else ""))
-
-
 def _click_until(click, done, what: str, panel, attempts: int = 4, patience: float = 30.0):
     """Click, and click again if the server has not seen it: a loaded CI machine can drop an event."""
     for _ in range(attempts):
         click()
         try:
-            return _wait(done, what, timeout=patience, panel=panel)
+            return wait_for(done, what, timeout=patience, panel=panel)
         except AssertionError:
             continue
     raise AssertionError(f"{what}: no effect after {attempts} clicks; the panel says: {panel.last_message}")
 
 
-def test_sketch_panel_in_a_real_browser(scene, tmp_path):
-    chromium = _chromium()
+@contextlib.contextmanager
+def _page(chromium: str, port: int, width: int, height: int):
+    """A headless Chromium page on the viewer at `port` (software WebGL; dialogs dismissed)."""
     from playwright.sync_api import sync_playwright
 
+    with sync_playwright() as playwright:
+        browser = playwright.chromium.launch(
+            executable_path=chromium, headless=True,
+            args=["--no-sandbox", "--use-angle=swiftshader", "--enable-unsafe-swiftshader", "--ignore-gpu-blocklist"],
+        )
+        page = browser.new_page(viewport={"width": width, "height": height})
+        page.on("dialog", lambda dialog: dialog.dismiss())
+        page.goto(f"http://127.0.0.1:{port}")
+        yield page
+        browser.close()
+
+
+def test_sketch_panel_in_a_real_browser(scene, tmp_path):
+    chromium = _chromium()
     from nerfstudio.viewer.render_state_machine import RenderStateMachine
 
     from sked_ns.drawing.sketch_viewer import start_viewer, stop_viewer
 
     out = tmp_path / "sketches"
-    port = _free_port()
+    port = free_port()
     viewer, panel = start_viewer(scene["base"], out, port=port)
     server = viewer.viser_server
     ARTIFACTS.mkdir(parents=True, exist_ok=True)
     try:
-        with sync_playwright() as playwright:
-            browser = playwright.chromium.launch(
-                executable_path=chromium, headless=True,
-                args=["--no-sandbox", "--use-angle=swiftshader", "--enable-unsafe-swiftshader", "--ignore-gpu-blocklist"],
-            )
-            page = browser.new_page(viewport={"width": 1100, "height": 750})
-            page.on("dialog", lambda dialog: dialog.dismiss())
-            page.goto(f"http://127.0.0.1:{port}")
-            capture = page.get_by_role("button", name="Capture view")
-            capture.wait_for(timeout=120_000)
-            client = _wait(lambda: next(iter(server.get_clients().values()), None), "the browser to connect")
-            # The 3D viewport's canvas: viser gives it a pointer cursor while scene clicks are on.
-            canvas = page.locator('canvas[style*="cursor: pointer"]')
+        with _page(chromium, port, 1100, 750) as page:
+            page.get_by_role("button", name="Capture view").wait_for(timeout=120_000)
             try:
                 for position in ((20.0, -20.0, 10.0), (-20.0, -20.0, 12.0)):  # viser units: 10 x nerfstudio's
-                    client.camera.position = position
-                    client.camera.look_at = (0.0, 0.0, 0.0)
-                    time.sleep(1.0)
-                    capture.click()  # pressing again while it renders would be ignored: wait instead
-                    _wait(lambda: panel.session.pending is not None, "the captured view", timeout=300, panel=panel)
-                    # The panel's status follows the pointer-enable message on the same socket: once the
-                    # page shows it, the canvas sends clicks (a click before that is dropped by viser).
-                    page.get_by_text("Click the points").first.wait_for(timeout=120_000)
-                    canvas.wait_for(timeout=120_000)
-                    box = canvas.bounding_box()
-                    corners = [(0.45, 0.40), (0.55, 0.40), (0.55, 0.50), (0.45, 0.50)]  # a small square on the canvas
-                    for index, (x, y) in enumerate(corners):
-                        # A repeated click at the same spot adds a zero-length edge: the outline is unchanged.
-                        _click_until(lambda: page.mouse.click(box["x"] + x * box["width"], box["y"] + y * box["height"]),
-                                     lambda n=index + 1: len(panel.session.pending.points) >= n, f"click {index + 1}", panel)
-                    page.get_by_role("button", name="Close scribble").click()
-                    _wait(lambda: panel.session.pending.mask.any(), "the filled outline", panel=panel)
-                    wanted = len(panel.session.views) + 1
-                    page.get_by_role("button", name="Add view").click()
-                    _wait(lambda: len(panel.session.views) >= wanted, "the added view", panel=panel)
-                    page.get_by_text("view(s).").first.wait_for(timeout=120_000)  # pointer events off again
+                    _draw_view(page, server, panel, position, (0.45, 0.40, 0.55, 0.50))  # a small square
             except Exception:
                 page.screenshot(path=str(ARTIFACTS / "sked_sketch_panel_failure.png"))
                 raise
             page.get_by_role("button", name="Save sketch set").click()
-            _wait(lambda: (out / "sketches.json").exists(), "the saved sketch set", panel=panel)
+            wait_for(lambda: (out / "sketches.json").exists(), "the saved sketch set", panel=panel)
             page.wait_for_timeout(1000)
             page.screenshot(path=str(ARTIFACTS / "sked_sketch_panel.png"))
             assert page.get_by_text("Saved 2 views").count() >= 1
-            browser.close()
     finally:
         stop_viewer(viewer)
     # A render thread still running at exit makes torch abort the interpreter (exit code 134).
@@ -142,26 +111,29 @@ def test_sketch_panel_in_a_real_browser(scene, tmp_path):
 def _draw_view(page, server, panel, position, square) -> None:
     """Move the browser's camera to `position` (viser units) looking at the origin, capture the view, click the
     corners of `square` ((x0, y0, x1, y1) as fractions of the canvas), close the outline and add the view."""
-    client = _wait(lambda: next(iter(server.get_clients().values()), None), "the browser to connect")
+    client = wait_for(lambda: next(iter(server.get_clients().values()), None), "the browser to connect")
     client.camera.position = position
     client.camera.look_at = (0.0, 0.0, 0.0)
     time.sleep(1.0)
-    page.get_by_role("button", name="Capture view").click()
-    _wait(lambda: panel.session.pending is not None, "the captured view", timeout=300, panel=panel)
+    page.get_by_role("button", name="Capture view").click()  # pressed again while it renders it would be ignored
+    wait_for(lambda: panel.session.pending is not None, "the captured view", timeout=300, panel=panel)
+    # The panel's status follows the pointer-enable message on the same socket: once the page shows it, the canvas
+    # sends clicks (a click before that is dropped by viser); viser gives the canvas a pointer cursor then.
     page.get_by_text("Click the points").first.wait_for(timeout=120_000)
     canvas = page.locator('canvas[style*="cursor: pointer"]')
     canvas.wait_for(timeout=120_000)
     box = canvas.bounding_box()
     x0, y0, x1, y1 = square
     for index, (x, y) in enumerate([(x0, y0), (x1, y0), (x1, y1), (x0, y1)]):
+        # A repeated click at the same spot adds a zero-length edge: the outline is unchanged.
         _click_until(lambda: page.mouse.click(box["x"] + x * box["width"], box["y"] + y * box["height"]),
                      lambda n=index + 1: len(panel.session.pending.points) >= n, f"click {index + 1}", panel)
     page.get_by_role("button", name="Close scribble").click()
-    _wait(lambda: panel.session.pending.mask.any(), "the filled outline", panel=panel)
+    wait_for(lambda: panel.session.pending.mask.any(), "the filled outline", panel=panel)
     wanted = len(panel.session.views) + 1
     page.get_by_role("button", name="Add view").click()
-    _wait(lambda: len(panel.session.views) >= wanted, "the added view", panel=panel)
-    page.get_by_text("view(s).").first.wait_for(timeout=120_000)
+    wait_for(lambda: len(panel.session.views) >= wanted, "the added view", panel=panel)
+    page.get_by_text("view(s).").first.wait_for(timeout=120_000)  # pointer events off again
 
 
 OVERVIEW = (12.0, -16.0, 9.0)
@@ -190,8 +162,6 @@ def test_edit_session_in_a_real_browser(scene, tmp_path):
     import sys
 
     chromium = _chromium()
-    from playwright.sync_api import sync_playwright
-
     from session_helpers import SessionThread, session_config
     from tiny_sd import build_tiny_stable_diffusion
 
@@ -207,14 +177,7 @@ def test_edit_session_in_a_real_browser(scene, tmp_path):
         print(f"[{time.monotonic() - started:6.1f} s] {what}", flush=True)
     ARTIFACTS.mkdir(parents=True, exist_ok=True)
     try:
-        with sync_playwright() as playwright:
-            browser = playwright.chromium.launch(
-                executable_path=chromium, headless=True,
-                args=["--no-sandbox", "--use-angle=swiftshader", "--enable-unsafe-swiftshader", "--ignore-gpu-blocklist"],
-            )
-            page = browser.new_page(viewport={"width": 1200, "height": 800})
-            page.on("dialog", lambda dialog: dialog.dismiss())
-            page.goto(f"http://127.0.0.1:{port}")
+        with _page(chromium, port, 1200, 800) as page:
             try:
                 page.get_by_text("Training waits for a sketch set").first.wait_for(timeout=120_000)
                 page.get_by_text("carves the sketched region away").first.wait_for(timeout=60_000)
@@ -222,7 +185,7 @@ def test_edit_session_in_a_real_browser(scene, tmp_path):
                 for position in views:
                     _draw_view(page, server, sketch, position, (0.45, 0.40, 0.55, 0.50))
                 _type_prompt(page, "a red chef hat")
-                _wait(lambda: panel.prompt() == "a red chef hat", "the typed prompt", panel=panel)
+                wait_for(lambda: panel.prompt() == "a red chef hat", "the typed prompt", panel=panel)
                 page.get_by_text("fills the sketched region with the prompt").first.wait_for(timeout=60_000)
                 mark("drawn")
                 _look_from(server, OVERVIEW)
@@ -255,11 +218,11 @@ def test_edit_session_in_a_real_browser(scene, tmp_path):
             except Exception:
                 page.screenshot(path=str(ARTIFACTS / "session_failure.png"))
                 raise
-            browser.close()
     finally:
         running.close()
     first, second = session.rounds
-    assert session.prompts == ["a red chef hat", None]
+    prompts = [yaml.load((run / "config.yml").read_text(), Loader=yaml.Loader).pipeline.model.prompt for run in (first, second)]
+    assert prompts == ["a red chef hat", None]
     assert len(load_sketch_set(first / "sketches").views) == 2 and len(load_sketch_set(second / "sketches").views) == 2
 
     bin_dir = Path(sys.executable).parent
