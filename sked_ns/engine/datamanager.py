@@ -19,7 +19,7 @@ from nerfstudio.cameras.rays import RayBundle
 from nerfstudio.data.datamanagers.base_datamanager import VanillaDataManager, VanillaDataManagerConfig
 from nerfstudio.utils.rich_utils import CONSOLE
 
-from sked_ns.sketches.cameras import cameras_of
+from sked_ns.sketches.cameras import cameras_of, pinhole_rays
 from sked_ns.method.edit_box import EditBox
 from sked_ns.sketches.data_frame import SKETCH_FRAME, TRAINING_CAMERAS
 from sked_ns.sketches.random_views import ELEVATION_RANGE_DEG, FOV_RANGE_DEG, RandomViewSampler, focal_from_fov
@@ -113,24 +113,30 @@ class SkedDataManager(VanillaDataManager):
                           f"(--pipeline.datamanager.edit-fill {self.config.edit_fill:g}; 0 keeps --pipeline.datamanager.fov-range)")
         self.guidance_resolution = guidance_resolution
 
-    def next_sked(self, step: int, photo_rays: bool = False, photo_view: bool = False) -> Dict:
-        """One random view (rays shaped H x W, and its camera), the fixed sketch views (flat rays and masks,
-        and per view a camera and mask), and (photo_rays) a batch of the base's training rays with their photo
-        colours, drawn as nerfstudio draws them for training, or (photo_view) one whole training photo."""
+    def next_sked(self, step: int, photo_rays: bool = False, photo_view: bool = False,
+                  random_view_camera: bool = True) -> Dict:
+        """One random view (rays shaped H x W, and with `random_view_camera` its camera on the device, for a model
+        that renders cameras), the fixed sketch views (flat rays and masks, and per view a camera and mask), and
+        (photo_rays) a batch of the base's training rays with their photo colours, drawn as nerfstudio draws them
+        for training, or (photo_view) one whole training photo."""
         generator = torch.Generator().manual_seed(self.config.seed * 1_000_003 + step)  # resumable
         pose, fov, direction = self.random_views.sample(generator)
         size = self.guidance_resolution
         focal = focal_from_fov(fov, size)
-        camera = cameras_of(torch.tensor(pose[None], dtype=torch.float32), focal, focal, size / 2, size / 2, size, size)
-        ray_bundle = camera.generate_rays(camera_indices=0, keep_shape=True).to(self.device)
+        pose_tensor = torch.tensor(pose, dtype=torch.float32)
+        # The pose crosses to the device (12 numbers) and the rays are made there: nerfstudio's generate_rays would
+        # build them with a dozen host copies and scalar reads.
+        ray_bundle = pinhole_rays(pose_tensor.to(self.device), focal, size)
         data = {
             "random_view": ray_bundle,
-            "random_view_camera": camera.to(self.device),
             "random_camera": {"camera_to_world": pose, "focal": focal, "direction": direction},
             "sketch_rays": self.sketch_rays,
             "sketch_masks": self.sketch_masks,
             "sketch_views": self.sketch_cameras,
         }
+        if random_view_camera:
+            camera = cameras_of(pose_tensor[None], focal, focal, size / 2, size / 2, size, size)
+            data["random_view_camera"] = camera.to(self.device)
         if photo_rays:
             rays, batch = self.next_train(step)
             data["photo"] = (rays.to(self.device), batch["image"].to(self.device))

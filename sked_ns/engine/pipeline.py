@@ -73,7 +73,8 @@ class SkedPipeline(VanillaPipeline):
         self.prepare_guidance()
         photos = self.model.photo_anchor_acts()
         images = renders_cameras(self.model)  # splats render whole photos, NeRFs ray batches
-        data = self.datamanager.next_sked(step, photo_rays=photos and not images, photo_view=photos and images)
+        data = self.datamanager.next_sked(step, photo_rays=photos and not images, photo_view=photos and images,
+                                          random_view_camera=images)
         return self.model.get_sked_loss_dict(data, step)
 
 

@@ -31,6 +31,7 @@ import dataclasses
 import math
 from typing import Callable, Dict, Optional, Tuple, Union
 
+import numpy as np
 import torch
 from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackLocation
 from torch import Tensor
@@ -87,6 +88,9 @@ class SkedEdit:
         self.lpips = None
         self.sketch_set = sketch_set = model_frame_sketches(self.config.sketches, self.kwargs.get("metadata") or {})
         self.edit_box: EditBox = compute_edit_box(sketch_set.views, scene_box=self.scene_box.aabb.numpy())
+        # The box as a device buffer (moved with the model, never saved): a host-built tensor per call would be a sync.
+        self.register_buffer("edit_box_bounds", torch.as_tensor(np.stack([self.edit_box.min, self.edit_box.max]),
+                                                                dtype=torch.float32), persistent=False)
         self.sketch_field = SketchDistanceField(
             sketch_set.views, compile=self.config.compile_lookup and torch.cuda.is_available()
         )
@@ -170,11 +174,11 @@ class SkedEdit:
         """Whether points (..., 3) project inside every sketch, to `tolerance` image widths (default a
         pixel): where new mass may appear."""
         flat = positions.reshape(-1, 3)
-        inside = self.edit_box.contains(flat)  # cheap first: the box holds the hull
-        if inside.any():
-            if tolerance is None:
-                tolerance = 1.0 / min(view.width for view in self.sketch_set.views)
-            inside[inside.clone()] = self.sketch_field.hull_distance(flat[inside]) <= tolerance
+        if tolerance is None:
+            tolerance = 1.0 / min(view.width for view in self.sketch_set.views)
+        # Every point, no mask: a step never waits to learn how many points are in the box.
+        low, high = self.edit_box_bounds.to(flat.dtype)
+        inside = ((flat >= low) & (flat <= high)).all(dim=-1) & (self.sketch_field.hull_distance(flat) <= tolerance)
         return inside.reshape(positions.shape[:-1])
 
     # ---- the losses on images ----------------------------------------------------------------
@@ -228,10 +232,11 @@ class SkedEdit:
 
     @staticmethod
     def finite_check(losses: Dict[str, Tensor], metrics: Dict[str, Tensor]) -> None:
-        """Counts the losses that are not finite (metrics["nonfinite_losses"]): safe_step skips such a step."""
-        bad = [name for name, value in losses.items() if not torch.isfinite(value).all()]
-        if bad:
-            metrics["nonfinite_losses"] = torch.tensor(float(len(bad)))
+        """Counts the losses that are not finite (metrics["nonfinite_losses"], 0 when all are): safe_step skips such a
+        step. Counted on the device: the host reads it only when it logs."""
+        if losses:
+            flags = torch.stack([~torch.isfinite(value.detach()).all() for value in losses.values()])
+            metrics["nonfinite_losses"] = flags.sum().float()
 
     # ---- the base-photo anchor --------------------------------------------------------------
     def photo_anchor_acts(self) -> bool:

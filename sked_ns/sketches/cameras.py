@@ -24,6 +24,8 @@ if TYPE_CHECKING:  # nerfstudio only where a nerfstudio camera is made: the math
 
 # Points closer to the camera plane than this (scene units) count as behind it.
 MIN_DEPTH = 1e-6
+NORM_EPS = float(np.finfo(float).eps * 4.0)
+"""nerfstudio's floor for a ray direction's norm (camera_utils._EPS)."""
 
 
 def project(
@@ -197,3 +199,36 @@ def ray_aabb(rays_o: Tensor, rays_d: Tensor, aabb: Tensor) -> Tuple[Tensor, Tens
     inverse = 1.0 / torch.where(rays_d.abs() < 1e-12, torch.full_like(rays_d, 1e-12), rays_d)
     t_a, t_b = (aabb[:3] - rays_o) * inverse, (aabb[3:] - rays_o) * inverse
     return torch.minimum(t_a, t_b).amax(-1), torch.maximum(t_a, t_b).amin(-1)
+
+
+def pinhole_rays(camera_to_world: torch.Tensor, focal: float, size: int):
+    """nerfstudio's `Cameras.generate_rays(camera_indices=0, keep_shape=True)` for one square, undistorted pinhole
+    camera (fx = fy = focal, cx = cy = size / 2, OpenGL axes), made on the pose's device with the same operations:
+    no host-built tensor and no scalar read on the way (nerfstudio's path has a dozen of each). `camera_to_world`:
+    (3, 4). Returns a RayBundle shaped (size, size)."""
+    from nerfstudio.cameras.rays import RayBundle
+
+    device, dtype = camera_to_world.device, camera_to_world.dtype
+    pixels = torch.arange(size, device=device, dtype=dtype) + 0.5
+    y, x = torch.meshgrid(pixels, pixels, indexing="ij")
+    centre = size / 2.0
+    coord = torch.stack([(x - centre) / focal, (y - centre) / focal], -1)
+    coord_x_offset = torch.stack([(x - centre + 1) / focal, (y - centre) / focal], -1)
+    coord_y_offset = torch.stack([(x - centre) / focal, (y - centre + 1) / focal], -1)
+    coord_stack = torch.stack([coord, coord_x_offset, coord_y_offset], dim=0)  # (3, H, W, 2)
+    coord_stack[..., 1] *= -1  # OpenCV -> OpenGL
+    directions_stack = torch.cat([coord_stack, -torch.ones_like(coord_stack[..., :1])], dim=-1)
+    rotation = camera_to_world[:3, :3]
+    directions_stack = torch.sum(directions_stack[..., None, :] * rotation, dim=-1)
+    norm = torch.linalg.vector_norm(directions_stack, dim=-1, keepdim=True).clamp_min(NORM_EPS)
+    directions_stack = directions_stack / norm
+    directions = directions_stack[0]
+    dx = torch.sqrt(torch.sum((directions - directions_stack[1]) ** 2, dim=-1))
+    dy = torch.sqrt(torch.sum((directions - directions_stack[2]) ** 2, dim=-1))
+    return RayBundle(
+        origins=camera_to_world[:3, 3].expand(size, size, 3).clone(),  # its own memory, as nerfstudio's
+        directions=directions,
+        pixel_area=(dx * dy)[..., None],
+        camera_indices=torch.zeros(size, size, 1, dtype=torch.long, device=device),
+        metadata={"directions_norm": norm[0].detach()},
+    )

@@ -50,12 +50,10 @@ class ColourResidual(torch.nn.Module):
     def apply(self, rgb: Tensor, positions: Tensor, preservation_weight: Tensor) -> Tensor:
         """The head's colour moved by (1 - w) r in logit space; exactly the head's colour where w = 1 or r = 0."""
         editable = (1.0 - preservation_weight.float()).clamp(0.0, 1.0)
-        near = editable[..., 0] > 0
-        if not bool(near.any()):
-            return rgb
-        # Only samples near the sketches pay for the grid lookup; the rest keep the head's value and gradient.
-        out = rgb.float().clone()
-        logit = torch.logit(out[near].clamp(LOGIT_EPS, 1.0 - LOGIT_EPS))
+        # Every sample, no mask: where w = 1 the offset is 0 * r and the difference below exactly 0 (value and
+        # gradient), so a step launches the same kernels and never waits to learn which samples are near.
+        out = rgb.float()
+        logit = torch.logit(out.clamp(LOGIT_EPS, 1.0 - LOGIT_EPS))
         # Added as a difference, so a zero residual gives the head's colour bit for bit (the edit starts as the base).
-        out[near] = out[near] + (torch.sigmoid(logit + editable[near] * self(positions[near])) - torch.sigmoid(logit))
+        out = out + (torch.sigmoid(logit + editable * self(positions)) - torch.sigmoid(logit))
         return out.to(rgb.dtype)

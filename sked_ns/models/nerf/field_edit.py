@@ -27,6 +27,7 @@ from sked_ns.models.nerf.chunked import chunked
 from sked_ns.models.nerf.colour_residual import ColourResidual
 from sked_ns.method.edit import SkedEdit, StepTerms
 from sked_ns.errors import SkedUserError
+from sked_ns.models.nerf.hash_grid import use_fast_hash_grids
 from sked_ns.models.nerf.held_field import held_field_outputs
 from sked_ns.method.hull_carving import SketchRayOpacity
 from sked_ns.method.losses import new_mass_loss, occupancy_log_probabilities, preservation_loss
@@ -125,6 +126,11 @@ class SkedMixin(SkedEdit):
         optimizer.load_state_dict({"pose_adjustment": adjustment})
         return [optimizer.eval().requires_grad_(False)]
 
+    def _freeze_base(self, **modules: torch.nn.Module) -> None:
+        super()._freeze_base(**modules)
+        # Torch hash grids without a host copy per call, the edit's and the frozen base's (hash_grid.py).
+        use_fast_hash_grids(self, *self.frozen_base.modules())
+
     @property
     def base_field(self):
         return self.frozen_base.field
@@ -212,7 +218,7 @@ class SkedMixin(SkedEdit):
         def density(positions: Tensor, times: Optional[Tensor] = None) -> Tensor:
             value = edit_fn(positions, times)
             kept = self._kept(positions)
-            if kept is None or not bool(kept.any()):
+            if kept is None:
                 return value
             with torch.no_grad():
                 base = base_fn(positions, times)

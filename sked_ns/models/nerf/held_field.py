@@ -27,25 +27,16 @@ def held_field_outputs(
 ) -> Tuple[Dict, Dict]:
     """(composite outputs, base outputs) at every sample: the base's where `kept`, the edit's elsewhere.
 
-    `kept` has the samples' shape (None: nothing held, the edit everywhere). The base is evaluated
-    at every sample without gradients (L_pres compares the two there); the editable field only at
-    the samples not kept, so kept samples cost no backward pass. The fields map RaySamples of any
-    batch shape to a dict of (*shape, channels) tensors, as nerfstudio's fields do.
+    `kept` has the samples' shape (None: nothing held, the edit everywhere). Both fields are evaluated at every
+    sample, the base without gradients (L_pres compares the two there), and the composite picks per sample without
+    looking at `kept` on the host: no sync and no data-dependent shape, so a step launches the same kernels whatever
+    the sketches hold. A kept sample's edit output gets no gradient. The fields map RaySamples of any batch shape to
+    a dict of (*shape, channels) tensors, as nerfstudio's fields do.
     """
     with torch.no_grad():
         base = base_field(ray_samples)
-    if kept is None or not bool(kept.any()):
-        return edit_field(ray_samples), base
-    editable = ~kept
-    if not bool(editable.any()):
-        # Nothing editable along these rays: the base, with a zero-gradient link to the edit so a loss over them
-        # still has a graph (one sample's evaluation).
-        probe = edit_field(ray_samples.flatten()[:1])
-        return {key: value + 0.0 * probe[key].sum() for key, value in base.items() if key in probe}, base
-    edited = edit_field(ray_samples[editable])
-    outputs = {}
-    for key, value in edited.items():
-        held = base[key].detach().clone().to(value.dtype)
-        held[editable] = value  # index_put keeps the edit's gradient at its samples
-        outputs[key] = held
-    return outputs, base
+    edited = edit_field(ray_samples)
+    if kept is None:
+        return edited, base
+    held = kept[..., None]
+    return {key: torch.where(held, base[key].detach().to(value.dtype), value) for key, value in edited.items()}, base
