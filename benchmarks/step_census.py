@@ -15,8 +15,8 @@ is "trainer").
 The counts of ops and syncs do not depend on how many rays a call carries, only on how many calls: the step is run
 at a small random-view size (--measure-resolution) with the sketch views and the chunk size scaled by the same area
 ratio, so that every chunked call is made as often as at the reported size (--resolution); the samples are scaled
-by the ratio of rays. The chunk size is what the edit would choose on the device named by --device-memory-gb
-(the memory plan: one chunk where the step fits).
+by the ratio of rays. The chunk size is what the edit would choose on a device with --device-memory-gb free (the memory
+plan: no chunks where the step fits), or --field-chunk.
 
 Writes benchmarks/results/step_census.json (keys "nerfacto@128", "nerfacto@128-no-proposal-update",
 "instant-ngp@128", "splatfacto@128"; each with compute_ops, syncs, chunked_calls, base_proposal_samples and the
@@ -252,6 +252,9 @@ def census_of(work: Path, method: str, base: Path, args, proposal_update: bool =
     ratio = (args.resolution / args.measure_resolution) ** 2
     sketch = max(8, round(args.silhouette_resolution * args.measure_resolution / args.resolution))
     chunk = None if args.field_chunk is None else int(args.field_chunk / ratio)
+    if chunk is None:  # the plan's choice at the reported size, on the named device
+        chosen = planned_chunk(work, method, base, args)
+        chunk = int(chosen / ratio) if chosen > 0 else 0
     trainer = setup_edit(work, method, base, args, args.measure_resolution, sketch, chunk)
     model = trainer.pipeline.model
     state: Dict = {}
@@ -284,6 +287,31 @@ def census_of(work: Path, method: str, base: Path, args, proposal_update: bool =
     return entry
 
 
+def planned_chunk(work: Path, method: str, base: Path, args) -> int:
+    """The field chunk `ns-train sked` chooses for this edit at --resolution on a device with --device-memory-gb
+    free (its memory plan), or its fixed default where it has no plan to choose with."""
+    from sked_ns.engine import memory_plan
+
+    free = args.device_memory_gb * memory_plan.GB
+    patched = {"_free_bytes": lambda device: free, "_available_host_bytes": lambda: free}
+    saved = {name: getattr(memory_plan, name) for name in patched if hasattr(memory_plan, name)}
+    for name, value in patched.items():
+        setattr(memory_plan, name, value)
+    try:
+        arguments = [
+            "--load-dir", str(base), "--sketches", str(work / "sketches"), "--max-num-iterations", "100",
+            "--output-dir", str(work / "plans"), "--experiment-name", f"{method}-{args.resolution}", "--vis",
+            "tensorboard", "--machine.device-type", "cpu", "--prompt", "a red chef hat",
+            "--pipeline.model.guidance-resolution", str(args.resolution),
+            "--pipeline.model.silhouette-resolution", str(args.silhouette_resolution), *args.extra,
+            "pipeline.model.guidance:reference", "nerfstudio-data", "--data", str(work / "data"),
+        ]
+        return int(getattr(ns_train_sked(arguments).pipeline.model, "field_chunk", 0))
+    finally:
+        for name, value in saved.items():
+            setattr(memory_plan, name, value)
+
+
 def table(results: Dict) -> str:
     lines = [f"{'step':34s} {'compute ops':>11s} {'syncs':>6s} {'chunked':>8s} {'base prop. samples':>19s}"]
     for key, entry in results.items():
@@ -306,6 +334,8 @@ def main() -> None:
     parser.add_argument("--measure-resolution", type=int, default=32, help="random-view size the step is run at")
     parser.add_argument("--field-chunk", type=int, default=None,
                         help="chunk size at --resolution (default: what the edit chooses)")
+    parser.add_argument("--device-memory-gb", type=float, default=140.0,
+                        help="free memory of the device the field chunk is chosen for (default: one H200)")
     parser.add_argument("--base-steps", type=int, default=60, help="fitting steps of the demo bases")
     parser.add_argument("--workdir", type=Path, default=None, help="reuse bases built there")
     parser.add_argument("--label", default=None, help="store the results under this label in the file")

@@ -149,7 +149,7 @@ def step_work(options, datamanager, representation: str) -> StepWork:
         samples = options.num_nerf_samples_per_ray + sum(options.num_proposal_samples_per_ray)
         scale *= samples / STEP_MODELS["nerfacto"].samples_per_ray
     return StepWork(random_view, sketch + (datamanager.train_num_rays_per_batch if photos else 0), scale,
-                    int(options.field_chunk))
+                    max(int(options.field_chunk), 0))
 
 
 def nerf_side(representation: str, work: StepWork, base_bytes: float) -> Tuple[float, float]:
@@ -287,11 +287,56 @@ def options_that_fit(config, free: float) -> List[str]:
     return fitting
 
 
+def _available_host_bytes() -> Optional[float]:
+    """Memory the kernel says a new process could use without swapping (Linux); None elsewhere."""
+    try:
+        with open("/proc/meminfo") as handle:
+            for line in handle:
+                if line.startswith("MemAvailable:"):
+                    return float(line.split()[1]) * 1024
+    except OSError:
+        return None
+    return None
+
+
+UNCHUNKED_SHARE = 0.8
+"""An unchunked step is chosen where the whole plan takes at most this share of the free memory."""
+
+
+def choose_field_chunk(config, free: Optional[float]) -> int:
+    """The field chunk of an edit whose config leaves it to the plan (-1): none (0) where the whole step fits in
+    UNCHUNKED_SHARE of FREE bytes (one call per field, no re-run in the backward pass), else the checkpointed chunk.
+    Representations without field chunks (splats) get 0."""
+    import copy
+
+    from sked_ns.method.options import CHECKPOINTED_FIELD_CHUNK
+
+    trial = copy.deepcopy(config)
+    trial.pipeline.model.field_chunk = 0
+    if free is None or plan_edit(trial).peak <= UNCHUNKED_SHARE * free:
+        return 0
+    return CHECKPOINTED_FIELD_CHUNK
+
+
 def check_memory(config) -> MemoryPlan:
-    """Print the plan once; refuse, before anything is written, an edit that cannot fit in the CUDA device's free
-    memory, naming the options that would."""
+    """Choose the field chunk where the config leaves it to the plan; print the plan once; refuse, before anything
+    is written, an edit that cannot fit in the CUDA device's free memory, naming the options that would."""
+    from sked_ns.method.options import AUTO_FIELD_CHUNK
+
+    options = config.pipeline.model
+    if getattr(options, "field_chunk", 0) == AUTO_FIELD_CHUNK:
+        device = config.machine.device_type
+        free = _free_bytes("cuda:0" if device == "cuda" else device)
+        options.field_chunk = choose_field_chunk(config, free if free is not None or device != "cpu"
+                                                 else _available_host_bytes())
+        chosen = options.field_chunk
+    else:
+        chosen = None
     plan = plan_edit(config)
     line = plan.line()
+    if chosen is not None:
+        line += ("; fields unchunked (the step fits)" if chosen == 0 else
+                 f"; fields in checkpointed chunks of {chosen} samples (an unchunked step would not fit)")
     if line not in _PRINTED:
         _PRINTED.add(line)
         print(line + " (model: docs/benchmarks.md, Memory)", flush=True)

@@ -21,6 +21,12 @@ if TYPE_CHECKING:
     from sked_ns.sketches.sketch_set import SketchSet
 
 
+AUTO_FIELD_CHUNK = -1
+"""`field_chunk` chosen by the memory plan (engine/memory_plan.choose_field_chunk)."""
+CHECKPOINTED_FIELD_CHUNK = 65536
+"""The chunk the plan falls back to where an unchunked step does not fit: a few hundred MB of activations."""
+
+
 @dataclass
 class SkedOptions:
     """SKED's settings, shared by every edit model."""
@@ -87,11 +93,12 @@ class SkedOptions:
     """torch.compile the sketch-distance lookup on CUDA."""
     samples_per_ray_scale: float = 1.0
     """Samples per ray relative to the base's (nerfacto: sample counts; instant-ngp: 1 / step size)."""
-    field_chunk: int = 65536
+    field_chunk: int = -1
     """NeRF bases: field samples evaluated per gradient-checkpointed chunk while training (models/nerf/chunked.py):
     a chunk keeps only its inputs and outputs until the backward pass evaluates it again, which cuts the NeRF side
-    of a step several times over for one more forward pass of the fields (docs/benchmarks.md). A nerfacto ray has
-    256 + 96 proposal samples and 48 field samples. 0: no checkpointing (fastest, most memory)."""
+    of a step several times over, at one more forward pass of the fields and a call per chunk (docs/benchmarks.md).
+    -1 (default): chosen before training by the memory plan, none where the step fits the device, else 65536.
+    0: no checkpointing (fastest, most memory)."""
     lambda_photo: float = 1.0
     """Weight of the base-photo anchor (photo_anchor.py): the base's training photos, at rays that never come
     near the editable region, keep the edit as the base was trained. 0: the paper's losses only. NeRF bases hold

@@ -57,9 +57,9 @@ def option_problems(options) -> List[str]:
         value = getattr(options, name)
         if not (_is_whole(value) and value > 0):
             problems.append(f"{flag(name)} {value!r}: must be a whole number of pixels > 0 (the paper's 128).")
-    if not (_is_whole(options.field_chunk) and options.field_chunk >= 0):
+    if not (_is_whole(options.field_chunk) and options.field_chunk >= -1):
         problems.append(f"{flag('field_chunk')} {options.field_chunk!r}: must be a whole number of samples >= 0 "
-                        "(0: no gradient checkpointing).")
+                        "(0: no gradient checkpointing), or -1 to let the memory plan choose.")
     if not (_is_whole(options.edit_box_warmup) and options.edit_box_warmup >= 0):
         problems.append(f"{flag('edit_box_warmup')} {options.edit_box_warmup!r}: must be a whole number of "
                         "iterations >= 0.")
@@ -124,8 +124,8 @@ def warn_unusual_options(options) -> List[str]:
                            "over 8x the base's samples per ray: each step costs as much more, for little gain."))
     if 0 < options.field_chunk < SMALL_FIELD_CHUNK:
         messages.append(f"{flag('field_chunk')} {options.field_chunk}: chunks this small make a step many times slower "
-                        "(one call per chunk) for no memory that matters; 0 turns checkpointing off, the default "
-                        "65536 keeps a chunk's activations to a few hundred MB.")
+                        "(one call per chunk) for no memory that matters; 0 turns checkpointing off, 65536 keeps a "
+                        "chunk's activations to a few hundred MB, and the default -1 lets the memory plan choose.")
     if options.lambda_photo > 0 and options.photo_threshold >= 1:
         messages.append(f"{flag('photo_threshold')} 1: no photo ray has every weight above 1, so the photo anchor "
                         "never acts; use --pipeline.model.lambda-photo 0 to turn it off, or 0.99.")

@@ -114,6 +114,7 @@ def _config(scene, tmp_path, **model):
     from sked_ns.engine.edit_run import edit_config
 
     config = edit_config(scene["base"], scene["data"], scene["sketches"], tmp_path / "out", iterations=5)
+    model.setdefault("field_chunk", 65536)  # the plan's refusals at a fixed chunk (the auto choice: its own test)
     for key, value in model.items():
         setattr(config.pipeline.model, key, value)
     return config
@@ -171,3 +172,39 @@ def test_the_plans_coefficients_are_the_benchmarks():
     if sd:
         assert memory_plan.SD_STEP_BYTES_AT_512 == pytest.approx(sd["step_bytes_at_512"], rel=0.01)
         assert memory_plan.VAE_CHECKPOINTING_SHARE == pytest.approx(sd["vae_checkpointing_share"], rel=0.01)
+
+
+def test_the_field_chunk_is_chosen_by_the_plan_where_left_to_it(scene, tmp_path, monkeypatch):
+    """-1: no chunks where the unchunked step fits the device's free memory, the checkpointed chunk where it does not;
+    a chunk the user typed is kept."""
+    from sked_ns.method.options import AUTO_FIELD_CHUNK, CHECKPOINTED_FIELD_CHUNK
+
+    memory_plan._PRINTED.clear()
+    unchunked = _config(scene, tmp_path / "a", field_chunk=0, guidance_resolution=64, silhouette_resolution=64)
+    chunked = _config(scene, tmp_path / "b", field_chunk=CHECKPOINTED_FIELD_CHUNK, guidance_resolution=64,
+                      silhouette_resolution=64)
+    peaks = [memory_plan.plan_edit(_resolved_copy(config)).peak for config in (unchunked, chunked)]
+    assert peaks[1] < peaks[0]
+    for free, expected in ((10 * peaks[0], 0), ((peaks[0] + peaks[1]) / 2, CHECKPOINTED_FIELD_CHUNK)):
+        monkeypatch.setattr(memory_plan, "_free_bytes", lambda device, free=free: free)
+        config = _config(scene, tmp_path / "c", field_chunk=AUTO_FIELD_CHUNK, guidance_resolution=64,
+                         silhouette_resolution=64)
+        _resolve(config)
+        assert config.pipeline.model.field_chunk == expected
+    typed = _config(scene, tmp_path / "d", field_chunk=4096, guidance_resolution=64, silhouette_resolution=64)
+    _resolve(typed)
+    assert typed.pipeline.model.field_chunk == 4096
+
+
+def _resolve(config):
+    from sked_ns.engine.trainer import resolve_edit
+
+    resolve_edit(config)
+
+
+def _resolved_copy(config):
+    import copy
+
+    config = copy.deepcopy(config)
+    _resolve(config)
+    return config

@@ -138,8 +138,9 @@ def test_splat_settings_that_edit_too_much_are_warned(name, value):
 
 
 def test_field_chunks_below_zero_are_refused_and_tiny_ones_warned():
-    with pytest.raises(SkedOptionError, match="field-chunk -1"):
-        check_options(SkedNerfactoModelConfig(field_chunk=-1))
+    with pytest.raises(SkedOptionError, match="field-chunk -2"):
+        check_options(SkedNerfactoModelConfig(field_chunk=-2))
+    check_options(SkedNerfactoModelConfig(field_chunk=-1))  # the default: the memory plan chooses
     with pytest.warns(SkedOptionWarning, match="field-chunk 8: chunks this small"):
         check_options(SkedNerfactoModelConfig(field_chunk=8))
     with warnings.catch_warnings():

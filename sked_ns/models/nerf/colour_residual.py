@@ -15,8 +15,9 @@ from __future__ import annotations
 
 import numpy as np
 import torch
-from nerfstudio.field_components.encodings import HashEncoding
 from torch import Tensor
+
+from sked_ns.models.nerf.hash_grid import FastHashEncoding
 
 LOGIT_EPS = 1e-4
 """Colours are clamped to [eps, 1 - eps] before the logit, so a saturated head stays finite."""
@@ -35,9 +36,9 @@ class ColourResidual(torch.nn.Module):
         # torch implementation: a few thousand samples per step, and it runs wherever the model runs. Features start
         # at +-0.1 (nerfacto's grids: 1e-3) because the linear layer starts at zero: its first gradient is the
         # features, and with both near zero the residual would sit at its saddle for many steps.
-        self.encoding = HashEncoding(num_levels=num_levels, min_res=4, max_res=max_res,
+        self.encoding = FastHashEncoding(num_levels=num_levels, min_res=4, max_res=max_res,
                                      log2_hashmap_size=log2_hashmap_size, hash_init_scale=0.1,
-                                     implementation="torch")
+                                     implementation="torch").prepare()
         self.linear = torch.nn.Linear(self.encoding.get_out_dim(), 3)
         torch.nn.init.zeros_(self.linear.weight)
         torch.nn.init.zeros_(self.linear.bias)

@@ -32,6 +32,8 @@ from sked_ns.models.nerf.held_field import held_field_outputs
 from sked_ns.method.hull_carving import SketchRayOpacity
 from sked_ns.method.losses import new_mass_loss, occupancy_log_probabilities, preservation_loss
 from sked_ns.method.options import (  # noqa: F401  (re-exported: their home was this module)
+    AUTO_FIELD_CHUNK,
+    CHECKPOINTED_FIELD_CHUNK,
     SkedOptions,
     SkedSettingsWarning,
     is_carving,
@@ -193,7 +195,13 @@ class SkedMixin(SkedEdit):
     def in_chunks(self, function, *modules: torch.nn.Module):
         """`function` (a field's evaluation at samples or positions) in chunks of config.field_chunk samples, gradient-
         checkpointed while training (chunked.py); `modules`: the fields it evaluates."""
-        return chunked(function, lambda: self.config.field_chunk, modules)
+        return chunked(function, self.field_chunk, modules)
+
+    def field_chunk(self) -> int:
+        """config.field_chunk, or where the memory plan did not choose it (a model built outside ns-train sked) the
+        checkpointed chunk: the safe side."""
+        chunk = self.config.field_chunk
+        return CHECKPOINTED_FIELD_CHUNK if chunk == AUTO_FIELD_CHUNK else chunk
 
     # ---- kept content held exactly (held_field.py) --------------------------------------------
     def _kept(self, positions: Tensor) -> Optional[Tensor]:

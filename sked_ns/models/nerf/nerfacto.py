@@ -16,6 +16,7 @@ from nerfstudio.models.nerfacto import NerfactoModel, NerfactoModelConfig
 from torch import Tensor
 from torch.nn import Parameter
 
+from sked_ns.models.nerf.density_grid import BaseDensityGrid, finest_resolution
 from sked_ns.models.nerf.field_edit import NERF_EDIT_OWNED, SkedMixin
 from sked_ns.method.options import (  # noqa: F401  (re-exported: the public names of the edit model)
     SkedOptions,
@@ -37,6 +38,11 @@ class SkedNerfactoModelConfig(NerfactoModelConfig, SkedOptions):
     edit_box_density: float = 2.0
     """Proposal density added inside the sketches' visual hull (within the edit box) during warm-up, per unit
     of box diagonal."""
+    base_proposal_grid: int = 128
+    """The frozen base's proposal densities, which decide where kept space is sampled, read from a grid of this many
+    cells a side sampled once per edit (at most each network's finest hash level; models/nerf/density_grid.py), not
+    evaluated at every proposal sample of every step. 0: the networks themselves (exact, about twice the proposal
+    work of a step)."""
     camera_optimizer: CameraOptimizerConfig = field(default_factory=lambda: CameraOptimizerConfig(mode="off"))
     """Edits keep the base's cameras."""
 
@@ -63,13 +69,28 @@ class SkedNerfactoModel(SkedMixin, NerfactoModel):
         self._setup_sked()
         self._load_base_weights()
         self._freeze_base(field=self.field, proposal_networks=self.proposal_networks)
-        # Proposals see kept space as the base does, so a ray through kept space only samples as the base's did.
+        # Proposals see kept space as the base does, so a ray through kept space only samples as the base's did:
+        # its proposal densities read from grids sampled once (density_grid.py), or its networks (grid 0).
         base_fns = self._base_density_fns = [self.in_chunks(network.density_fn, network)
                                              for network in self.frozen_base.proposal_networks]
-        self.density_fns = [self.held_density_fn(fn, base_fns[min(i, len(base_fns) - 1)])
-                            for i, fn in enumerate(self.density_fns)]
+        self._base_proposal_grids: Dict[int, BaseDensityGrid] = {}  # built on the device at the first step
+        held = [self._base_proposal_grid_fn(i) for i in range(len(base_fns))] if self.config.base_proposal_grid > 0 \
+            else base_fns
+        self.density_fns = [self.held_density_fn(fn, held[min(i, len(held) - 1)]) for i, fn in enumerate(self.density_fns)]
         self._boost_proposals_in_edit_box()
         self.density_fns = [self.in_chunks(fn, *self.proposal_networks) for fn in self.density_fns]
+
+    def _base_proposal_grid_fn(self, index: int):
+        """The frozen base's proposal network `index` as a density grid, sampled where the model is when first read."""
+        def density(positions: Tensor, times: Optional[Tensor] = None) -> Tensor:
+            grid = self._base_proposal_grids.get(index)
+            if grid is None or grid.grid.device != positions.device:
+                network = self.frozen_base.proposal_networks[index]
+                resolution = min(finest_resolution(network), self.config.base_proposal_grid)
+                grid = self._base_proposal_grids[index] = BaseDensityGrid(network, resolution)
+            return grid(positions)
+
+        return density
 
     @torch.no_grad()
     def render_base(self, ray_bundle: RayBundle) -> Dict[str, Tensor]:
