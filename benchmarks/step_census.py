@@ -177,9 +177,11 @@ def device_tensors(trainer) -> List[torch.Tensor]:
                     if isinstance(getattr(rays, f, None), torch.Tensor)]
     for camera, mask in getattr(datamanager, "sketch_cameras", []):
         tensors += [mask] + [v for v in vars(camera).values() if isinstance(v, torch.Tensor)]
-    for value in vars(model).values():  # plain tensor attributes moved by the model's own code (caches)
+    for value in vars(model).values():  # plain attributes moved by the model's own code (caches, grids)
         if isinstance(value, torch.Tensor):
             tensors.append(value)
+        elif isinstance(value, dict):
+            tensors += module_tensors(*[v for v in value.values() if isinstance(v, torch.nn.Module)])
     return tensors
 
 
@@ -326,6 +328,19 @@ def table(results: Dict) -> str:
     return "\n".join(lines)
 
 
+def markdown(before: Dict, after: Dict) -> str:
+    """The before/after table of docs/benchmarks.md (Step census)."""
+    rows = ["| step | compute ops | syncs | chunked calls | frozen-base proposal samples |", "|---|---|---|---|---|"]
+    for key in after:
+        if not isinstance(after[key], dict) or "compute_ops" not in after[key]:
+            continue
+        old, new = before.get(key, {}), after[key]
+        cells = [f"{old[name]:,} -> {new[name]:,}" if name in old else f"{new[name]:,}"
+                 for name in ("compute_ops", "syncs", "chunked_calls", "base_proposal_samples")]
+        rows.append(f"| {key} | " + " | ".join(cells) + " |")
+    return "\n".join(rows)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--bases", nargs="+", default=["nerfacto", "instant-ngp", "splatfacto"])
@@ -340,8 +355,13 @@ def main() -> None:
     parser.add_argument("--workdir", type=Path, default=None, help="reuse bases built there")
     parser.add_argument("--label", default=None, help="store the results under this label in the file")
     parser.add_argument("--out", type=Path, default=RESULTS / "step_census.json")
+    parser.add_argument("--markdown", action="store_true", help="print the file's before/after table and stop")
     parser.add_argument("extra", nargs="*", help="more ns-train sked flags (before the dataparser)")
     args = parser.parse_args()
+    if args.markdown:
+        stored = json.loads(args.out.read_text())
+        print(markdown(stored.get("before", {}), {k: v for k, v in stored.items() if k != "before"}))
+        return
     torch.manual_seed(0)
     os.environ.setdefault("HF_HUB_OFFLINE", "1")
     with (contextlib.nullcontext(str(args.workdir)) if args.workdir else tempfile.TemporaryDirectory()) as folder:

@@ -74,15 +74,19 @@ class SkedNerfactoModel(SkedMixin, NerfactoModel):
         base_fns = self._base_density_fns = [self.in_chunks(network.density_fn, network)
                                              for network in self.frozen_base.proposal_networks]
         self._base_proposal_grids: Dict[int, BaseDensityGrid] = {}  # built on the device at the first step
-        held = [self._base_proposal_grid_fn(i) for i in range(len(base_fns))] if self.config.base_proposal_grid > 0 \
-            else base_fns
+        held = [self._base_proposal_grid_fn(i, fn) for i, fn in enumerate(base_fns)] \
+            if self.config.base_proposal_grid > 0 else base_fns
         self.density_fns = [self.held_density_fn(fn, held[min(i, len(held) - 1)]) for i, fn in enumerate(self.density_fns)]
         self._boost_proposals_in_edit_box()
         self.density_fns = [self.in_chunks(fn, *self.proposal_networks) for fn in self.density_fns]
 
-    def _base_proposal_grid_fn(self, index: int):
-        """The frozen base's proposal network `index` as a density grid, sampled where the model is when first read."""
+    def _base_proposal_grid_fn(self, index: int, network_fn):
+        """The frozen base's proposal network `index` while training, as a density grid sampled where the model is when
+        first read; `network_fn` (the network) in every other render, so what a user sees of kept space is the base's
+        own, bit for bit."""
         def density(positions: Tensor, times: Optional[Tensor] = None) -> Tensor:
+            if not self.training:
+                return network_fn(positions, times)
             grid = self._base_proposal_grids.get(index)
             if grid is None or grid.grid.device != positions.device:
                 network = self.frozen_base.proposal_networks[index]
