@@ -184,7 +184,8 @@ def nerf_side(work: Path, method: str, base: Path, resolution: int, args, smalle
             settings[key] = model.config.__dict__[key]
     datamanager = trainer.pipeline.datamanager
     photos = model.photo_anchor_acts()
-    settings["rays"] = {"random_view": resolution ** 2, "sketch_views": int(len(datamanager.sketch_rays)),
+    settings["rays"] = {"random_view": resolution ** 2,
+                        "sketch_views": int(len(getattr(datamanager, "masked_sketch_rays", datamanager.sketch_rays))),
                         "photo": datamanager.config.train_num_rays_per_batch if photos and nerf else 0}
     settings["photo_anchor"] = bool(photos)
     reset = mark_parts(trainer)

@@ -244,8 +244,11 @@ def make_bases(work: Path, methods: List[str], args) -> Dict[str, Path]:
         elif method == "splatfacto":
             bases[method] = fit_demo_splat_base(work / "data", work / "bases", SplatFit(steps=args.base_steps))
         else:
-            bases[method] = build_demo_base(work / "data", work / "bases", steps=args.base_steps, tiny=None,
-                                            method=method)
+            from memory import few_grid_passes
+
+            with few_grid_passes(2 if method != "nerfacto" else None):  # instant-ngp's full-grid passes take minutes
+                bases[method] = build_demo_base(work / "data", work / "bases", steps=args.base_steps, tiny=None,
+                                                method=method)
     return bases
 
 

@@ -97,6 +97,9 @@ class SkedDataManager(VanillaDataManager):
         # Views may differ in size: rays and masks are kept flat, in the same order.
         self.sketch_rays: RayBundle = _concatenate(rays).to(self.device)
         self.sketch_masks = torch.cat([mask.flatten() for mask in masks]).float().to(self.device)
+        # L_sil counts only the masks' pixels: a NeRF renders those rays alone (found once here, not per step).
+        self.sketch_pixels = torch.nonzero(self.sketch_masks > 0)[:, 0]
+        self.masked_sketch_rays: RayBundle = self.sketch_rays[self.sketch_pixels]
         self.random_views = RandomViewSampler.around_sketches(
             edit_box.center, [view.camera_to_world for view in sketch_set.views],
             radius_scale_range=tuple(self.config.radius_scale_range),
@@ -116,7 +119,8 @@ class SkedDataManager(VanillaDataManager):
     def next_sked(self, step: int, photo_rays: bool = False, photo_view: bool = False,
                   random_view_camera: bool = True) -> Dict:
         """One random view (rays shaped H x W, and with `random_view_camera` its camera on the device, for a model
-        that renders cameras), the fixed sketch views (flat rays and masks, and per view a camera and mask), and
+        that renders cameras), the fixed sketch views (flat rays and masks, the rays at the masks' pixels with those
+        pixels' indices, and per view a camera and mask), and
         (photo_rays) a batch of the base's training rays with their photo colours, drawn as nerfstudio draws them
         for training, or (photo_view) one whole training photo."""
         generator = torch.Generator().manual_seed(self.config.seed * 1_000_003 + step)  # resumable
@@ -132,6 +136,8 @@ class SkedDataManager(VanillaDataManager):
             "random_camera": {"camera_to_world": pose, "focal": focal, "direction": direction},
             "sketch_rays": self.sketch_rays,
             "sketch_masks": self.sketch_masks,
+            "masked_sketch_rays": self.masked_sketch_rays,
+            "sketch_pixels": self.sketch_pixels,
             "sketch_views": self.sketch_cameras,
         }
         if random_view_camera:

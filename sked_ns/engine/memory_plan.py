@@ -127,7 +127,7 @@ class StepWork:
     rays: float
     """Rays of the random view (a splat edit: pixels of every render of the step)."""
     sketch_rays: float = 0.0
-    """Rays of the sketch views at their L_sil size and of the photo anchor (NeRF edits)."""
+    """Rays of the sketch views under the masks at their L_sil size, and of the photo anchor (NeRF edits)."""
     sample_scale: float = 1.0
     """Samples per ray relative to those its StepModel was measured at."""
     chunk: int = 0
@@ -135,11 +135,11 @@ class StepWork:
 
 
 def step_work(options, datamanager, representation: str) -> StepWork:
-    from sked_ns.sketches.sketch_set import load_sketch_set, sketch_view_size
+    from sked_ns.sketches.sketch_set import load_sketch_set, sketch_view_at, sketch_view_size
 
     random_view = float(options.guidance_resolution ** 2)
-    sketch = float(sum(math.prod(sketch_view_size(view, options.silhouette_resolution))
-                       for view in load_sketch_set(options.sketches).views))
+    views = load_sketch_set(options.sketches).views
+    sketch = float(sum(math.prod(sketch_view_size(view, options.silhouette_resolution)) for view in views))
     if representation == "splatfacto":  # the supersampled random view, the sketch views, a photo at the view's size
         photo = random_view if options.effective_lambda_photo > 0 else 0.0
         return StepWork(random_view * max(int(options.splat_supersampling), 1) ** 2 + sketch + photo)
@@ -148,7 +148,9 @@ def step_work(options, datamanager, representation: str) -> StepWork:
     if representation == "nerfacto":
         samples = options.num_nerf_samples_per_ray + sum(options.num_proposal_samples_per_ray)
         scale *= samples / STEP_MODELS["nerfacto"].samples_per_ray
-    return StepWork(random_view, sketch + (datamanager.train_num_rays_per_batch if photos else 0), scale,
+    # A NeRF renders the sketch views only at the masks' pixels (L_sil counts nothing else).
+    masked = float(sum(int(sketch_view_at(view, options.silhouette_resolution)[1].sum()) for view in views))
+    return StepWork(random_view, masked + (datamanager.train_num_rays_per_batch if photos else 0), scale,
                     max(int(options.field_chunk), 0))
 
 

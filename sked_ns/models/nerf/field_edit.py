@@ -293,6 +293,13 @@ class SkedMixin(SkedEdit):
         """All losses of one iteration from the datamanager's `next_sked` dict; returns (outputs, losses, metrics)."""
         config = self.config
         random_view, sketch_rays, sketch_masks = data["random_view"], data["sketch_rays"], data["sketch_masks"]
+        # L_sil (and L_new's gate) read the sketch views only at the masks' pixels: render those rays alone and place
+        # their opacity back among the views' pixels (zero elsewhere, where the masks weigh it by zero).
+        pixels = data.get("sketch_pixels")
+        if sketch_rays is not None and pixels is not None:
+            sketch_rays = data["masked_sketch_rays"]
+        to_views = (lambda opacity: opacity) if pixels is None else (  # noqa: E731
+            lambda opacity: opacity.new_zeros(len(sketch_masks), *opacity.shape[1:]).index_copy(0, pixels, opacity))
         height, width = random_view.shape[:2]
         with self._average_appearance():
             view, samples, field_outputs = self._render(self._collide(random_view.flatten()))
@@ -325,12 +332,13 @@ class SkedMixin(SkedEdit):
                 if config.silhouette_opacity == "editable":
                     opacity = self.editable_accumulation(sketch_samples.frustums.get_positions(), sketch["_weights"],
                                                          opacity, sketch.get("_ray_indices"))
+                opacity = to_views(opacity)
                 terms.sketch = (opacity, sketch_masks)
             if config.lambda_new_mass > 0:
                 # New mass on sketch rays the edit has already made opaque (or off the sketches) fades unless the
                 # guidance holds it; the base's own opacity on a sketch ray (a table behind it) does not count.
                 gate = (self.sketch_ray_opacity.gate(samples.frustums.get_positions(),
-                                                     opacity.detach() - self._base_sketch_opacity(sketch_rays),
+                                                     opacity.detach() - to_views(self._base_sketch_opacity(sketch_rays)),
                                                      sketch_masks)
                         if sketch is not None else None)
                 terms.new_mass = new_mass_loss(density_edit, base_outputs[FieldHeadNames.DENSITY], weight,
