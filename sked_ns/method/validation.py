@@ -23,6 +23,8 @@ LARGE_GUIDANCE_RESOLUTION = 512
 """Stable Diffusion's own input size; the paper renders 128 and upsamples."""
 SMALL_GUIDANCE_RESOLUTION = 32
 SMALL_FIELD_CHUNK = 1024
+SMALL_PROPOSAL_GRID = 32
+"""Base proposal grids coarser than this (cells a side) are warned: they blur the base's surfaces."""
 """Fewer field samples per checkpointed chunk than this cost calls, not memory."""
 
 
@@ -60,6 +62,10 @@ def option_problems(options) -> List[str]:
     if not (_is_whole(options.field_chunk) and options.field_chunk >= -1):
         problems.append(f"{flag('field_chunk')} {options.field_chunk!r}: must be a whole number of samples >= 0 "
                         "(0: no gradient checkpointing), or -1 to let the memory plan choose.")
+    grid = getattr(options, "base_proposal_grid", 0)  # nerfacto bases
+    if not (_is_whole(grid) and grid >= 0):
+        problems.append(f"{flag('base_proposal_grid')} {grid!r}: must be a whole number of cells a side >= 0 "
+                        "(0: the base's proposal networks themselves).")
     if not (_is_whole(options.edit_box_warmup) and options.edit_box_warmup >= 0):
         problems.append(f"{flag('edit_box_warmup')} {options.edit_box_warmup!r}: must be a whole number of "
                         "iterations >= 0.")
@@ -122,6 +128,10 @@ def warn_unusual_options(options) -> List[str]:
                         + ("under a quarter of the samples the base was trained with: thin parts and the new content "
                            "fall between samples." if options.samples_per_ray_scale < 0.25 else
                            "over 8x the base's samples per ray: each step costs as much more, for little gain."))
+    if 0 < getattr(options, "base_proposal_grid", 0) < SMALL_PROPOSAL_GRID:
+        messages.append(f"{flag('base_proposal_grid')} {options.base_proposal_grid}: a grid this coarse blurs the "
+                        "base's proposal densities, so kept space is sampled off its surfaces while training; "
+                        "the default 128 follows the networks' own detail, 0 evaluates them.")
     if 0 < options.field_chunk < SMALL_FIELD_CHUNK:
         messages.append(f"{flag('field_chunk')} {options.field_chunk}: chunks this small make a step many times slower "
                         "(one call per chunk) for no memory that matters; 0 turns checkpointing off, 65536 keeps a "

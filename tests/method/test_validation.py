@@ -146,3 +146,13 @@ def test_field_chunks_below_zero_are_refused_and_tiny_ones_warned():
     with warnings.catch_warnings():
         warnings.simplefilter("error", SkedOptionWarning)
         check_options(SkedNerfactoModelConfig(field_chunk=0))  # off: legal, the fastest
+
+
+def test_base_proposal_grids_below_zero_are_refused_and_coarse_ones_warned():
+    with pytest.raises(SkedOptionError, match="base-proposal-grid -1"):
+        check_options(SkedNerfactoModelConfig(base_proposal_grid=-1))
+    with pytest.warns(SkedOptionWarning, match="base-proposal-grid 4: a grid this coarse"):
+        check_options(SkedNerfactoModelConfig(base_proposal_grid=4))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", SkedOptionWarning)
+        check_options(SkedNerfactoModelConfig(base_proposal_grid=0))  # the networks: legal
