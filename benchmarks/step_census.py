@@ -125,13 +125,14 @@ def instrument(trainer, state: Dict, counters: Counters) -> None:
         wrap(model, "_render_edit", census, "sketch_view_render")
     wrap(model, "render_base", census, "frozen_base")
     # Every network evaluation goes through its get_density (a field's forward too): one call per chunk.
-    base = model.frozen_base
-    wrap(base.field, "get_density", census, "frozen_base", counters, "base_field_samples")
-    for network in getattr(base, "proposal_networks", None) or []:
-        wrap(network, "get_density", census, "frozen_base", counters, "base_proposal_samples")
-    wrap(model.field, "get_density", census, None, counters, "edit_field_samples")
-    for network in getattr(model, "proposal_networks", None) or []:
-        wrap(network, "get_density", census, None, counters, "edit_proposal_samples")
+    base = getattr(model, "frozen_base", None)  # splats keep their base as reference Gaussians
+    if base is not None:
+        wrap(base.field, "get_density", census, "frozen_base", counters, "base_field_samples")
+        for network in getattr(base, "proposal_networks", None) or []:
+            wrap(network, "get_density", census, "frozen_base", counters, "base_proposal_samples")
+        wrap(model.field, "get_density", census, None, counters, "edit_field_samples")
+        for network in getattr(model, "proposal_networks", None) or []:
+            wrap(network, "get_density", census, None, counters, "edit_proposal_samples")
     if hasattr(model, "sketch_field"):
         wrap(model.sketch_field, "preservation_weight", census, "preservation")
         wrap(model.sketch_field, "hull_distance", census, "preservation")
@@ -378,15 +379,19 @@ def main() -> None:
             if method == "nerfacto":
                 results[f"{key}-no-proposal-update"] = census_of(work, method, bases[method], args,
                                                                  proposal_update=False)
+            write(args, results)  # each kind as soon as it is counted
     print(table(results))
+    print(f"wrote {args.out}")
+
+
+def write(args, results: Dict) -> None:
     existing = json.loads(args.out.read_text()) if args.out.exists() else {}
     if args.label:
-        existing[args.label] = results
+        existing.setdefault(args.label, {}).update(results)
     else:
         existing.update(results)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(existing, indent=1) + "\n")
-    print(f"wrote {args.out}")
 
 
 if __name__ == "__main__":

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import shlex
+
 import argparse
 import os
 import sys
@@ -221,7 +223,7 @@ def submit(args) -> int:
         return 0
     if args.dry_run:
         for status in islice(jobs, SHOWN_JOBS):
-            print(" ".join(status.job.train_command()))
+            print(shlex.join(status.job.train_command()))  # pasted into a shell, each argument stays one
         if len(jobs) > SHOWN_JOBS:
             print(f"... and {len(jobs) - SHOWN_JOBS} more edits like these (sked-batch status {args.plan} lists them)")
         return 0

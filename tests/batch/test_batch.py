@@ -581,3 +581,28 @@ def test_slurm_array_runs_the_plan_and_resubmitting_resumes_a_cancelled_edit(sce
     assert f"Resuming the SKED edit {long.run_dir} from step-{saved:09d}.ckpt to 40 iterations" in log
     table = list(csv.DictReader((plan.output / "results.csv").open()))  # written by the report job
     assert [(r["job"], r["status"], r["steps"]) for r in table] == [("short-s0", "done", "3"), ("long-s0", "done", "40")]
+
+
+def test_a_dry_run_prints_command_lines_a_shell_runs_as_planned(tmp_path, capsys):
+    """A sketches path with a space and a prompt with a shell metacharacter: each printed line, run through bash,
+    gives the job's own arguments and runs nothing else."""
+    from sked_ns.batch.cli import main
+
+    folder = tmp_path / "with space"
+    scene = {"base": folder / "base", "data": folder / "data", "sketches": folder / "my sketches"}
+    for path in scene.values():
+        path.mkdir(parents=True)
+    (scene["base"] / "config.yml").write_text("method_name: nerfacto\n")
+    (scene["sketches"] / "sketches.json").write_text("{}")
+    prompt = "a hat; echo INJECTED $(echo TWICE) 'quoted'"
+    path = write_plan(tmp_path / "p", scene, [{"name": "e", "prompts": [prompt]}])
+    with pytest.raises(SystemExit) as ended:
+        main([str(path), "--local", "--dry-run"])
+    assert ended.value.code == 0
+    lines = [line for line in capsys.readouterr().out.splitlines() if "--prompt" in line]
+    assert len(lines) == 1
+    expected = list(load_plan(path).jobs[0].train_command())
+    shown = subprocess.run(["bash", "-c", f"set -- {lines[0]}; printf '%s\\0' \"$@\""], capture_output=True,
+                           text=True, check=True).stdout
+    assert shown.split("\0")[:-1] == expected
+    assert prompt in expected and str(scene["sketches"]) in expected
