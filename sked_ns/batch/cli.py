@@ -2,10 +2,9 @@
 
 from __future__ import annotations
 
-import shlex
-
 import argparse
 import os
+import shlex
 import sys
 from collections import Counter, abc
 from itertools import islice
