@@ -168,14 +168,15 @@ def device_tensors(trainer) -> List[torch.Tensor]:
             # Adam's step counts stay on the host unless it is capturable or fused (torch.optim.adam)
             tensors += [v for k, v in values.items() if isinstance(v, torch.Tensor) and k != "step"]
     datamanager = trainer.pipeline.datamanager
-    for name in ("sketch_masks",):
+    for name in ("sketch_masks", "sketch_pixels"):
         value = getattr(datamanager, name, None)
         if isinstance(value, torch.Tensor):
             tensors.append(value)
-    rays = getattr(datamanager, "sketch_rays", None)
-    if rays is not None:
-        tensors += [getattr(rays, f) for f in ("origins", "directions", "pixel_area", "camera_indices", "nears", "fars")
-                    if isinstance(getattr(rays, f, None), torch.Tensor)]
+    for name in ("sketch_rays", "masked_sketch_rays"):  # made once at set-up, on the device
+        rays = getattr(datamanager, name, None)
+        if rays is not None:
+            tensors += [getattr(rays, f) for f in ("origins", "directions", "pixel_area", "camera_indices", "nears",
+                                                   "fars") if isinstance(getattr(rays, f, None), torch.Tensor)]
     for camera, mask in getattr(datamanager, "sketch_cameras", []):
         tensors += [mask] + [v for v in vars(camera).values() if isinstance(v, torch.Tensor)]
     for value in vars(model).values():  # plain attributes moved by the model's own code (caches, grids)
