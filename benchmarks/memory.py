@@ -167,6 +167,7 @@ def nerf_side(work: Path, method: str, base: Path, resolution: int, args, smalle
         "--output-dir", str(work / "edits"), "--experiment-name", f"{method}-{resolution}", "--vis", "tensorboard",
         "--machine.device-type", args.device, "--steps-per-save", str(10**9),
         "--pipeline.model.guidance-resolution", str(resolution),
+        "--pipeline.model.field-chunk", "65536",  # the chunked step measured (then none): not the plan's own choice
         *(["--pipeline.model.silhouette-resolution", str(args.silhouette_resolution)] if args.silhouette_resolution else []),
         "pipeline.model.guidance:reference", "nerfstudio-data", "--data", str(work / "data"),
     ]
