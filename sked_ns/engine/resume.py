@@ -24,6 +24,7 @@ RESUME_SETTABLE = (
     "steps_per_eval_batch", "steps_per_eval_image", "steps_per_eval_all_images", "save_only_latest_checkpoint",
     "vis", "viewer", "logging", "machine", "data", "pipeline.datamanager.data", "pipeline.datamanager.dataparser",
     "pipeline.model.eval_num_rays_per_chunk",
+    "pipeline.model.field_chunk",  # memory, not results (the same gradients): chosen anew for the device it resumes on
 )
 """Where and how the resumed edit runs (and its data, whose frame is checked): the command line may change these."""
 DATA_SETTINGS = ("data", "pipeline.datamanager.data", "pipeline.datamanager.dataparser")
@@ -33,6 +34,7 @@ RUN_FIELDS = ("timestamp", "load_dir", "load_step", "load_checkpoint", "load_con
 SETTINGS_SINCE = {
     "pipeline.datamanager.edit_fill": (0.0, "0.2"),
     "pipeline.model.guidance.sampling": ("pixel-centre", "0.2"),
+    "pipeline.model.base_proposal_grid": (0, "0.6"),
 }
 """Settings added after edits were saved, each with the value that continues such an edit as it ran and the last
 sked_ns version without it: a config.yml without the setting would otherwise read the new default."""

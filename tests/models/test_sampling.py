@@ -111,6 +111,7 @@ def test_nerfacto_warmup_boost_lands_only_in_the_sketches_visual_hull(scene, tmp
     points = _box_points(model)
     hull = model.in_sketch_hull(points)
     assert 0.02 < hull.float().mean() < 0.9  # the hull is a real part of the box, not all of it
+    model.eval()  # kept space from the base's proposal networks, not the training step's grid of them
     with torch.no_grad():
         boosted = model.density_fns[0](points[:, None, :])[:, 0, 0]
         plain = model.proposal_networks[0].density_fn(points[:, None, :])[:, 0, 0]
