@@ -58,7 +58,7 @@ class StepModel:
 
 
 STEP_MODELS: Dict[str, StepModel] = {
-    "nerfacto": StepModel(kept_per_ray=19466, activation_per_ray=465561, activation_per_sample=3529, samples_per_ray=400,
+    "nerfacto": StepModel(kept_per_ray=21443, activation_per_ray=471768, activation_per_sample=8087, samples_per_ray=400,
                           resident_per_weight_byte=4.502),
     # instant-ngp's samples per ray follow its occupancy grid (the scene); 16 or more fill a chunk at any step's rays.
     "instant-ngp": StepModel(kept_per_ray=4965, activation_per_ray=92260, activation_per_sample=6385, samples_per_ray=16,
