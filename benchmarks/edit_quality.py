@@ -314,6 +314,9 @@ VARIANTS = {"default": [],
             # NeRF bases: kept content held by L_pres and the photo anchor only, as before held_field.py.
             "soft-hold (keep-threshold 1: no sample held exactly; L_pres and the photo anchor hold kept content)":
                 _SOFT_HOLD,
+            # NeRF bases: the frozen base's proposal networks at every sample while training, not their grid.
+            "proposal-networks (base-proposal-grid 0: the base's proposal networks, not a grid of them)": [
+                "--pipeline.model.base-proposal-grid", "0"],
             # Guidance is the only loss on the random views' colours: what leaks without it is L_sil's.
             "no-guidance (L_sil, L_pres, photo anchor only)": ["--pipeline.model.guidance.weight", "0"],
             # A small sketch has few rays to pull its part into being: L_sil per sketch pixel.
