@@ -167,7 +167,7 @@ def nerf_side(work: Path, method: str, base: Path, resolution: int, args, smalle
         "--output-dir", str(work / "edits"), "--experiment-name", f"{method}-{resolution}", "--vis", "tensorboard",
         "--machine.device-type", args.device, "--steps-per-save", str(10**9),
         "--pipeline.model.guidance-resolution", str(resolution),
-        "--pipeline.model.field-chunk", "65536",  # the chunked step measured (then none): not the plan's own choice
+        "--pipeline.model.field-chunk", str(args.field_chunk),  # the chunked step (then none): not the plan's choice
         *(["--pipeline.model.silhouette-resolution", str(args.silhouette_resolution)] if args.silhouette_resolution else []),
         "pipeline.model.guidance:reference", "nerfstudio-data", "--data", str(work / "data"),
     ]
@@ -471,6 +471,8 @@ def main() -> None:
     parser.add_argument("--base-steps", type=int, default=30, help="fitting steps of each base")
     parser.add_argument("--timed-steps", type=int, default=1)
     parser.add_argument("--skip-unchunked", action="store_true")
+    parser.add_argument("--field-chunk", type=int, default=65536,
+                        help="samples per checkpointed chunk of the chunked step (the plan's fallback)")
     parser.add_argument("--parts", default="steps,sd",
                         help="what to measure: steps (each base kind and size), sd (Stable Diffusion's side)")
     parser.add_argument("--keep", action="store_true",

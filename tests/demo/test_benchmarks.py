@@ -312,8 +312,10 @@ def test_memory_benchmark_smoke_run(tmp_path):
     """Every part of the step is measured for each base kind, the model of the plan gets its inputs, and chunking
     cuts the NeRF side."""
     output = tmp_path / "memory.json"
+    # Chunks small enough to be many at 16 px (a NeRF renders the sketch views at their masks' pixels only).
     result = subprocess.run([sys.executable, str(BENCHMARKS / "memory.py"), "--sd", "tiny", "--resolutions", "16",
-                             "--silhouette-resolution", "16", "--base-steps", "5", "--output", str(output)],
+                             "--silhouette-resolution", "16", "--base-steps", "5", "--field-chunk", "4096",
+                             "--output", str(output)],
                             capture_output=True, text=True, timeout=900)
     assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
     data = json.loads(output.read_text())
