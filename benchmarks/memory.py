@@ -64,15 +64,16 @@ class ImageGradient:
             return {"image_gradient": (view.image * gradient).sum() * 1e-3}
 
 
-def _marked(owner, attribute: str, names: List[str]) -> Callable[[], None]:
-    """Wrap owner.attribute so that its n-th call in a step is the part names[n] (the last name after that)."""
+def _marked(owner, attribute: str, names: List[str], context: Callable = part) -> Callable[[], None]:
+    """Wrap owner.attribute so that its n-th call in a step runs inside context(names[n]) (the last name after that):
+    a memory part here, a census phase in step_census.py. Returns a function that restarts the count."""
     original = getattr(owner, attribute)
     calls = []
 
     def wrapped(*args, **kwargs):
         name = names[min(len(calls), len(names) - 1)]
         calls.append(name)
-        with part(name):
+        with context(name):
             return original(*args, **kwargs)
 
     setattr(owner, attribute, wrapped)
@@ -92,7 +93,12 @@ def mark_parts(trainer) -> Callable[[], None]:
     resets.append(_marked(model, "render_base", ["frozen_base_render"]))
     optimizers = trainer.optimizers
     resets.append(_marked(optimizers, "optimizer_scaler_step_some", ["optimiser"]))  # nerfstudio 1.1.5 steps "some"
-    scaler = trainer.grad_scaler
+    mark_backward(trainer.grad_scaler)
+    return lambda: [reset() for reset in resets]
+
+
+def mark_backward(scaler, context: Callable = part) -> None:
+    """nerfstudio's `grad_scaler.scale(loss).backward()` runs inside context("backward")."""
     original_scale = scaler.scale
 
     class Backward:
@@ -100,11 +106,10 @@ def mark_parts(trainer) -> Callable[[], None]:
             self.loss = loss
 
         def backward(self, *args, **kwargs):
-            with part("backward"):
+            with context("backward"):
                 return self.loss.backward(*args, **kwargs)
 
     scaler.scale = lambda outputs: Backward(original_scale(outputs))
-    return lambda: [reset() for reset in resets]
 
 
 def resident_bytes(trainer) -> Dict[str, int]:

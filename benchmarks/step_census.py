@@ -29,6 +29,7 @@ import argparse
 import collections
 import contextlib
 import json
+import math
 import os
 import sys
 import tempfile
@@ -76,84 +77,59 @@ class Counters:
 
 
 def _numel_rows(batch) -> int:
-    if isinstance(batch, torch.Tensor):
-        return int(batch.reshape(-1, batch.shape[-1]).shape[0])
-    shape = batch.shape
-    count = 1
-    for size in shape:
-        count *= int(size)
-    return count
+    """Samples in a network's input: positions (..., 3) or RaySamples."""
+    return math.prod(batch.shape[:-1] if isinstance(batch, torch.Tensor) else batch.shape)
 
 
-def wrap(owner, attribute: str, census: Callable[[], Optional[DispatchCensus]], phase: Optional[str] = None,
-         counters: Optional[Counters] = None, samples: Optional[str] = None) -> None:
-    """owner.attribute counted under `phase` (if given) and its first argument's samples under `samples`."""
+def wrap(owner, attribute: str, phase: Callable, name: Optional[str] = None, counters: Optional[Counters] = None,
+         samples: Optional[str] = None) -> None:
+    """owner.attribute counted under the phase `name` (if given), its first argument's samples under `samples`."""
     original = getattr(owner, attribute)
 
     def wrapped(*args, **kwargs):
         if counters is not None and samples is not None and args:
             counters.samples[samples] += _numel_rows(args[0])
             counters.calls[samples] += 1
-        mode = census()
-        context = mode.phase(phase) if (mode is not None and phase is not None) else contextlib.nullcontext()
-        with context:
+        with (phase(name) if name is not None else contextlib.nullcontext()):
             return original(*args, **kwargs)
 
     setattr(owner, attribute, wrapped)
 
 
 def instrument(trainer, state: Dict, counters: Counters) -> None:
-    """Name the step's phases and count samples through the networks."""
+    """Name the step's phases (memory.py's markers, with census phases for its memory parts) and count samples
+    through the networks."""
+    from memory import _marked, mark_backward
+
+    def phase(name: str):
+        census = state.get("census")
+        return census.phase(name) if census is not None else contextlib.nullcontext()
+
     model = trainer.pipeline.model
-    census = lambda: state.get("census")  # noqa: E731
-    if hasattr(model, "_render"):
-        calls = []
-        original = model._render
-        names = ["random_view_render", "sketch_view_render", "photo_anchor_render"]
-
-        def render(*args, **kwargs):
-            name = names[min(len(calls), len(names) - 1)]
-            calls.append(name)
-            mode = census()
-            with (mode.phase(name) if mode is not None else contextlib.nullcontext()):
-                return original(*args, **kwargs)
-
-        model._render = render
-        state["reset_renders"] = calls.clear
+    if hasattr(model, "_render"):  # NeRF: the random view, the sketch rays, the photo rays
+        state["reset_renders"] = _marked(model, "_render", ["random_view_render", "sketch_view_render",
+                                                             "photo_anchor_render"], phase)
     else:
-        wrap(model, "_render_supersampled", census, "random_view_render")
-        wrap(model, "_render_edit", census, "sketch_view_render")
-    wrap(model, "render_base", census, "frozen_base")
+        wrap(model, "_render_supersampled", phase, "random_view_render")
+        wrap(model, "_render_edit", phase, "sketch_view_render")
+    wrap(model, "render_base", phase, "frozen_base")
     # Every network evaluation goes through its get_density (a field's forward too): one call per chunk.
     base = getattr(model, "frozen_base", None)  # splats keep their base as reference Gaussians
     if base is not None:
-        wrap(base.field, "get_density", census, "frozen_base", counters, "base_field_samples")
+        wrap(base.field, "get_density", phase, "frozen_base", counters, "base_field_samples")
         for network in getattr(base, "proposal_networks", None) or []:
-            wrap(network, "get_density", census, "frozen_base", counters, "base_proposal_samples")
-        wrap(model.field, "get_density", census, None, counters, "edit_field_samples")
+            wrap(network, "get_density", phase, "frozen_base", counters, "base_proposal_samples")
+        wrap(model.field, "get_density", phase, None, counters, "edit_field_samples")
         for network in getattr(model, "proposal_networks", None) or []:
-            wrap(network, "get_density", census, None, counters, "edit_proposal_samples")
+            wrap(network, "get_density", phase, None, counters, "edit_proposal_samples")
     if hasattr(model, "sketch_field"):
-        wrap(model.sketch_field, "preservation_weight", census, "preservation")
-        wrap(model.sketch_field, "hull_distance", census, "preservation")
-    wrap(model, "objective", census, "losses")
-    for name in ("_sampling_losses",):
-        if hasattr(model, name):
-            wrap(model, name, census, "losses")
-    wrap(trainer.optimizers, "optimizer_scaler_step_some", census, "optimiser")
-    scaler = trainer.grad_scaler
-    original_scale = scaler.scale
-
-    class Backward:
-        def __init__(self, loss):
-            self.loss = loss
-
-        def backward(self, *args, **kwargs):
-            mode = census()
-            with (mode.phase("backward") if mode is not None else contextlib.nullcontext()):
-                return self.loss.backward(*args, **kwargs)
-
-    scaler.scale = lambda outputs: Backward(original_scale(outputs))
+        wrap(model.sketch_field, "preservation_weight", phase, "preservation")
+        wrap(model.sketch_field, "hull_distance", phase, "preservation")
+    wrap(model, "objective", phase, "losses")
+    if hasattr(model, "_sampling_losses"):
+        wrap(model, "_sampling_losses", phase, "losses")
+    wrap(trainer.optimizers, "optimizer_scaler_step_some", phase, "optimiser")
+    mark_backward(trainer.grad_scaler, phase)
 
 
 def device_tensors(trainer) -> List[torch.Tensor]:

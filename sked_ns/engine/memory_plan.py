@@ -139,8 +139,8 @@ def step_work(options, datamanager, representation: str) -> StepWork:
 
     random_view = float(options.guidance_resolution ** 2)
     views = load_sketch_set(options.sketches).views
-    sketch = float(sum(math.prod(sketch_view_size(view, options.silhouette_resolution)) for view in views))
     if representation == "splatfacto":  # the supersampled random view, the sketch views, a photo at the view's size
+        sketch = float(sum(math.prod(sketch_view_size(view, options.silhouette_resolution)) for view in views))
         photo = random_view if options.effective_lambda_photo > 0 else 0.0
         return StepWork(random_view * max(int(options.splat_supersampling), 1) ** 2 + sketch + photo)
     photos = options.lambda_photo > 0 and options.keep_threshold > options.photo_threshold
@@ -307,8 +307,8 @@ UNCHUNKED_SHARE = 0.8
 
 def choose_field_chunk(config, free: Optional[float]) -> int:
     """The field chunk of an edit whose config leaves it to the plan (-1): none (0) where the whole step fits in
-    UNCHUNKED_SHARE of FREE bytes (one call per field, no re-run in the backward pass), else the checkpointed chunk.
-    Representations without field chunks (splats) get 0."""
+    UNCHUNKED_SHARE of FREE bytes (one call per field, no re-run in the backward pass) or FREE is unknown, else the
+    checkpointed chunk."""
     import copy
 
     from sked_ns.method.options import CHECKPOINTED_FIELD_CHUNK
@@ -329,9 +329,9 @@ def check_memory(config) -> MemoryPlan:
     if getattr(options, "field_chunk", 0) == AUTO_FIELD_CHUNK:
         device = config.machine.device_type
         free = _free_bytes("cuda:0" if device == "cuda" else device)
-        options.field_chunk = choose_field_chunk(config, free if free is not None or device != "cpu"
-                                                 else _available_host_bytes())
-        chosen = options.field_chunk
+        if free is None and device == "cpu":
+            free = _available_host_bytes()
+        options.field_chunk = chosen = choose_field_chunk(config, free)
     else:
         chosen = None
     plan = plan_edit(config)

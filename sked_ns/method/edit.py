@@ -36,7 +36,7 @@ import torch
 from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackLocation
 from torch import Tensor
 
-from sked_ns.method.edit_box import EditBox, compute_edit_box
+from sked_ns.method.edit_box import EditBox, compute_edit_box, in_box
 from sked_ns.sketches.data_frame import model_frame_sketches
 from sked_ns.method.frozen_base import FrozenBase
 from sked_ns.guidance import Guidance, RenderedView
@@ -177,8 +177,7 @@ class SkedEdit:
         if tolerance is None:
             tolerance = 1.0 / min(view.width for view in self.sketch_set.views)
         # Every point, no mask: a step never waits to learn how many points are in the box.
-        low, high = self.edit_box_bounds.to(flat.dtype)
-        inside = ((flat >= low) & (flat <= high)).all(dim=-1) & (self.sketch_field.hull_distance(flat) <= tolerance)
+        inside = in_box(flat, self.edit_box_bounds.to(flat.dtype)) & (self.sketch_field.hull_distance(flat) <= tolerance)
         return inside.reshape(positions.shape[:-1])
 
     # ---- the losses on images ----------------------------------------------------------------

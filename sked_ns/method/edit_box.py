@@ -48,9 +48,12 @@ class EditBox:
         return self.max - self.min
 
     def contains(self, points: Tensor) -> Tensor:
-        low = torch.as_tensor(self.min, dtype=points.dtype, device=points.device)
-        high = torch.as_tensor(self.max, dtype=points.dtype, device=points.device)
-        return ((points >= low) & (points <= high)).all(dim=-1)
+        return in_box(points, torch.as_tensor(np.stack([self.min, self.max]), dtype=points.dtype, device=points.device))
+
+
+def in_box(points: Tensor, bounds: Tensor) -> Tensor:
+    """Whether points (..., 3) lie in the box `bounds` ([min, max], (2, 3)), faces included."""
+    return ((points >= bounds[0]) & (points <= bounds[1])).all(dim=-1)
 
 
 def frustum_halfspaces(view: SketchView) -> tuple[np.ndarray, np.ndarray]:

@@ -38,7 +38,7 @@ class ColourResidual(torch.nn.Module):
         # features, and with both near zero the residual would sit at its saddle for many steps.
         self.encoding = FastHashEncoding(num_levels=num_levels, min_res=4, max_res=max_res,
                                      log2_hashmap_size=log2_hashmap_size, hash_init_scale=0.1,
-                                     implementation="torch").prepare()
+                                     implementation="torch")
         self.linear = torch.nn.Linear(self.encoding.get_out_dim(), 3)
         torch.nn.init.zeros_(self.linear.weight)
         torch.nn.init.zeros_(self.linear.bias)

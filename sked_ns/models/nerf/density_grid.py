@@ -28,11 +28,6 @@ def normalised_positions(network: torch.nn.Module, positions: Tensor) -> Tensor:
     return SceneBox.get_normalized_positions(positions, network.aabb)
 
 
-def finest_resolution(network: torch.nn.Module) -> int:
-    """The finest level of the network's hash grid (its detail: a grid at it misses little)."""
-    return int(network.max_res)
-
-
 class BaseDensityGrid(torch.nn.Module):
     """A frozen proposal network's density at the centres of a resolution^3 grid, read trilinearly."""
 

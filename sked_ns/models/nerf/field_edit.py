@@ -298,8 +298,12 @@ class SkedMixin(SkedEdit):
         pixels = data.get("sketch_pixels")
         if sketch_rays is not None and pixels is not None:
             sketch_rays = data["masked_sketch_rays"]
-        to_views = (lambda opacity: opacity) if pixels is None else (  # noqa: E731
-            lambda opacity: opacity.new_zeros(len(sketch_masks), *opacity.shape[1:]).index_copy(0, pixels, opacity))
+
+        def to_views(opacity: Tensor) -> Tensor:
+            if pixels is None:
+                return opacity
+            return opacity.new_zeros(len(sketch_masks), *opacity.shape[1:]).index_copy(0, pixels, opacity)
+
         height, width = random_view.shape[:2]
         with self._average_appearance():
             view, samples, field_outputs = self._render(self._collide(random_view.flatten()))

@@ -7,8 +7,9 @@ copy waits for the stream. It also hashes and gathers the eight cell corners one
 
 `FastHashEncoding` is a HashEncoding whose constants are device buffers (not saved: the checkpoint keeps
 nerfstudio's layout) and whose eight corners are hashed, gathered and interpolated together. It makes the same
-floating-point operations in the same order as nerfstudio's, so its outputs and gradients are nerfstudio's bit for
-bit (tests/models/test_hash_grid.py holds it to that). SKED's models switch their own hash grids to it
+floating-point operations in the same order as nerfstudio's, so its outputs are nerfstudio's bit for bit; the
+table's gradient is one scatter-add over all corners instead of eight, equal up to float32 summation order
+(tests/models/test_hash_grid.py holds it to both). SKED's models switch their own hash grids to it
 (`use_fast_hash_grids`); nerfstudio's class is never changed.
 """
 
@@ -25,8 +26,12 @@ PRIMES = (1, 2654435761, 805459861)
 class FastHashEncoding(HashEncoding):
     """HashEncoding with device-resident constants and the corners evaluated together (torch implementation)."""
 
+    def __init__(self, *args, **kwargs) -> None:
+        super().__init__(*args, **kwargs)
+        self.prepare()
+
     def prepare(self) -> "FastHashEncoding":
-        """Register the constants as buffers on the table's device (idempotent)."""
+        """Register the constants as buffers on the table's device (a HashEncoding switched to this class calls it)."""
         device = self.hash_table.device
         levels = self.scalings.shape[0]
         self.register_buffer("level_scalings", self.scalings.reshape(levels, 1).float().to(device), persistent=False)
@@ -35,8 +40,6 @@ class FastHashEncoding(HashEncoding):
         return self
 
     def pytorch_fwd(self, in_tensor: Tensor) -> Tensor:
-        if "level_scalings" not in self._buffers:  # built as a plain HashEncoding and switched later
-            self.prepare()
         scaled = in_tensor[..., None, :] * self.level_scalings  # [..., L, 3]
         ceil, floor = torch.ceil(scaled).type(torch.int32), torch.floor(scaled).type(torch.int32)
         offset = scaled - floor

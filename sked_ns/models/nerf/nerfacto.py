@@ -16,7 +16,7 @@ from nerfstudio.models.nerfacto import NerfactoModel, NerfactoModelConfig
 from torch import Tensor
 from torch.nn import Parameter
 
-from sked_ns.models.nerf.density_grid import BaseDensityGrid, finest_resolution
+from sked_ns.models.nerf.density_grid import BaseDensityGrid
 from sked_ns.models.nerf.field_edit import NERF_EDIT_OWNED, SkedMixin
 from sked_ns.method.options import (  # noqa: F401  (re-exported: the public names of the edit model)
     SkedOptions,
@@ -90,7 +90,7 @@ class SkedNerfactoModel(SkedMixin, NerfactoModel):
             grid = self._base_proposal_grids.get(index)
             if grid is None or grid.grid.device != positions.device:
                 network = self.frozen_base.proposal_networks[index]
-                resolution = min(finest_resolution(network), self.config.base_proposal_grid)
+                resolution = min(int(network.max_res), self.config.base_proposal_grid)  # its finest hash level
                 grid = self._base_proposal_grids[index] = BaseDensityGrid(network, resolution)
             return grid(positions)
 
