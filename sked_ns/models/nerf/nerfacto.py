@@ -41,8 +41,8 @@ class SkedNerfactoModelConfig(NerfactoModelConfig, SkedOptions):
     base_proposal_grid: int = 128
     """The frozen base's proposal densities, which decide where kept space is sampled, read from a grid of this many
     cells a side sampled once per edit (at most each network's finest hash level; models/nerf/density_grid.py), not
-    evaluated at every proposal sample of every step. 0: the networks themselves (exact, about twice the proposal
-    work of a step)."""
+    evaluated at every proposal sample of every step. 0: the networks themselves (exact, at every proposal
+    sample of every step)."""
     camera_optimizer: CameraOptimizerConfig = field(default_factory=lambda: CameraOptimizerConfig(mode="off"))
     """Edits keep the base's cameras."""
 
