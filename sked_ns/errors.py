@@ -3,8 +3,8 @@
 Raise `SkedUserError` (or `SkedFileNotFoundError` for a missing file) with a message that names the
 file or flag as the user types it and says what to do. Every `ns-*` command imports the plugin, and
 every `sked-*` command is part of it; importing it installs `excepthook`: such an error prints
-`error: <message>` alone, on one line (set SKED_TRACEBACK=1 for the traceback); any other exception
-keeps Python's (or the previous hook's) full report. Where a library reads a file the user pointed
+`error: <message>` alone, on one line (set SKED_TRACEBACK=1 for the traceback), and Ctrl-C in a sked-* command
+one `interrupted:` line; any other exception keeps Python's (or the previous hook's) full report. Where a library reads a file the user pointed
 at, `reading` turns its failure into such an error; `ArgumentParser` does the same for argparse's.
 """
 
@@ -60,9 +60,15 @@ class ArgumentParser(argparse.ArgumentParser):
 
 
 def excepthook(kind, error, traceback) -> None:
-    if issubclass(kind, SkedUserError) and os.environ.get(TRACEBACK_ENV, "") in ("", "0"):
-        print(f"error: {one_line(str(error))}", file=sys.stderr)
-        return
+    if os.environ.get(TRACEBACK_ENV, "") in ("", "0"):
+        if issubclass(kind, SkedUserError):
+            print(f"error: {one_line(str(error))}", file=sys.stderr)
+            return
+        command = Path(sys.argv[0]).name if sys.argv and sys.argv[0] else ""
+        if issubclass(kind, KeyboardInterrupt) and command.startswith("sked-"):  # other commands keep their report
+            # Python still exits as killed by SIGINT: status 130.
+            print(f"interrupted: {command} stopped by Ctrl-C; what it had written whole is kept.", file=sys.stderr)
+            return
     _previous_excepthook(kind, error, traceback)
 
 

@@ -14,7 +14,7 @@ from typing import Dict, Iterator, List, Optional, Sequence
 from sked_ns.batch.plan import Job, Jobs, Plan, size_warning
 from sked_ns.batch.plan_file import load_plan, output_problem, slurm_problem
 from sked_ns.batch.state import TO_RUN, JobStatus, plan_status, status_table
-from sked_ns.errors import SkedUserError, show_warnings_as_lines, warn
+from sked_ns.errors import ArgumentParser, SkedUserError, show_warnings_as_lines, warn
 
 SHOWN_JOBS = 50
 """Jobs listed one by one when a plan is submitted (or dry-run) at most; the rest are counted."""
@@ -27,7 +27,7 @@ USAGE = """sked-batch PLAN --local | --slurm [options]   run the plan's edits no
 
 
 def run_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="sked-batch", usage=USAGE, description=(
+    parser = ArgumentParser(prog="sked-batch", usage=USAGE, description=(
         "A batch of SKED edits from a plan file (YAML or TOML): one `ns-train` run per edit, prompt and seed, each in "
         "its own folder; submitting the plan again skips finished edits, resumes interrupted ones and reruns failed "
         "ones. See docs/batch.md."))
@@ -253,7 +253,7 @@ def main(argv: Optional[List[str]] = None) -> None:
     argv = sys.argv[1:] if argv is None else argv
     command = argv[0] if argv else ""
     if command in ("status", "report", "task"):
-        parser = argparse.ArgumentParser(prog=f"sked-batch {command}", usage=USAGE)
+        parser = ArgumentParser(prog=f"sked-batch {command}", usage=USAGE)
         parser.add_argument("plan", type=Path)
         if command == "task":
             parser.add_argument("--job", required=True, help="the job's name (sked-batch status PLAN lists them)")

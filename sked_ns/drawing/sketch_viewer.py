@@ -27,8 +27,8 @@ import torch
 
 from sked_ns.errors import ArgumentParser, SkedFileExistsError, SkedUserError, reading
 from sked_ns.engine.viewer import add_frustum, show_sketch_views
-from sked_ns.drawing.sketching import (CANVASES_JSON, PinholeCamera, SketchSession, import_canvases, sketch_set_coverage,
-                               write_canvases)
+from sked_ns.drawing.sketching import (PinholeCamera, SketchSession, check_new_canvas_folder, import_canvases,
+                                       sketch_set_coverage, write_canvases)
 from sked_ns.sketches.sketch_set import SKETCHES_JSON, DataparserTransform
 
 VIEW_WIDTH = 512
@@ -340,9 +340,7 @@ def entrypoint(argv: Optional[List[str]] = None) -> None:
         parser.add_argument("folder", type=Path, help="new folder for view_XX.png and canvases.json")
         parser.add_argument("--images", type=int, nargs="+", required=True, help="training image indices to render")
         args = parser.parse_args(argv[1:])
-        if (args.folder / CANVASES_JSON).exists():  # before the base loads
-            raise SkedFileExistsError(f"sked-sketch canvases: {args.folder / CANVASES_JSON} already exists; choose a "
-                                      "new folder for the canvases.")
+        check_new_canvas_folder(args.folder)  # before the base loads
         _, pipeline, transform = _load(args.base, device)
         path = write_canvases(renderer(pipeline), training_cameras(pipeline, args.images), transform, args.folder,
                               names=[f"training image {i}" for i in args.images])

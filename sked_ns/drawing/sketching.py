@@ -202,9 +202,24 @@ def write_canvases(render: Callable[[PinholeCamera], np.ndarray], cameras: Seque
         return _write_canvases(render, cameras, transform, folder, names)
 
 
+def check_new_canvas_folder(folder: Path, command: str = "sked-sketch canvases") -> None:
+    """The canvases go into a new (or empty) folder: another set's canvases, a sketch set or the user's own files
+    there would be mixed with them or overwritten (view_XX.png)."""
+    folder = Path(folder)
+    if folder.exists() and not folder.is_dir():
+        raise SkedFileExistsError(f"{command}: {folder} is a file; name a new folder for the canvases.")
+    held = sorted(entry.name for entry in folder.iterdir()) if folder.is_dir() else []
+    if not held:
+        return
+    what = {CANVASES_JSON: "canvases", SKETCHES_JSON: "a sketch set"}
+    kind = next((f"{what[name]} ({folder / name})" for name in (CANVASES_JSON, SKETCHES_JSON) if name in held),
+                f"{len(held)} file(s) or folder(s), e.g. {held[0]}")
+    raise SkedFileExistsError(f"{command}: {folder} already holds {kind}; choose a new folder for the canvases "
+                              "(nothing there is overwritten).")
+
+
 def _write_canvases(render, cameras, transform, folder: Path, names) -> Path:
-    if (folder / CANVASES_JSON).exists():
-        raise SkedFileExistsError(f"{folder / CANVASES_JSON} already exists: choose a new folder for the canvases.")
+    check_new_canvas_folder(folder)
     folder.mkdir(parents=True, exist_ok=True)
     entries = []
     for index, camera in enumerate(cameras):

@@ -8,6 +8,7 @@ only ever read.
 from __future__ import annotations
 
 import re
+import shlex
 import warnings
 import zipfile
 from dataclasses import dataclass
@@ -114,15 +115,21 @@ def resolve_base(load_dir: Path, step: Optional[int] = None, flag: str = "--load
             f"{config_path}: missing. {flag} must be a nerfstudio run folder (with config.yml) or its "
             "nerfstudio_models folder; the base's config.yml says which model it is."
         )
-    if checkpoint is None:
-        if not models_dir.is_dir():
-            raise SkedFileNotFoundError(f"{models_dir}: missing; the run at {run_dir} has no saved checkpoints.")
-        checkpoint = _latest_checkpoint(models_dir, step)
     try:
         config = yaml.load(config_path.read_text(), Loader=yaml.Loader)
         method, model_config = config.method_name, config.pipeline.model
     except Exception as error:  # yaml of nerfstudio configs imports arbitrary modules
         raise SkedUserError(f"{config_path}: cannot read this nerfstudio config ({error}).") from error
+    if checkpoint is None:
+        if family(model_config) == "sked" and not any(models_dir.glob("step-*.ckpt")):
+            # An edit stopped before its first checkpoint: its settings and sketch set are there to start it again.
+            sketches = f" (its sketch set is saved in {model_config.sketches})" if model_config.sketches else ""
+            raise SkedFileNotFoundError(f"{run_dir}: this edit stopped before its first checkpoint, so there is nothing "
+                                        f"to resume{sketches}. Start it again with {restart_command(config)} (its other settings "
+                                        f"are in {config_path})")
+        if not models_dir.is_dir():
+            raise SkedFileNotFoundError(f"{models_dir}: missing; the run at {run_dir} has no saved checkpoints.")
+        checkpoint = _latest_checkpoint(models_dir, step)
     if family(model_config) is None:
         raise SkedUserError(
             f"{config_path}: the base was trained with '{method}' ({type(model_config).__name__}); sked edits "
@@ -160,6 +167,21 @@ def dataparser_command(base: BaseScene) -> str:
     dataparser = datamanager.dataparser
     data = getattr(datamanager, "data", None) or getattr(dataparser, "data", None) or "<the base data>"
     return f"`{dataparser_name(dataparser)} --data {data}`"
+
+
+def restart_command(config) -> str:
+    """The `ns-train` line that starts an edit (a SKED run's TrainerConfig) again from its base, its sketch set, its
+    prompt and its data, shell-quoted; further flags it was given are in its config.yml."""
+    model, datamanager = config.pipeline.model, config.pipeline.datamanager
+    base = Path(model.base_checkpoint).parent.parent if model.base_checkpoint else "<base run>"
+    words = ["ns-train", str(config.method_name), "--load-dir", str(base)]
+    if model.sketches:
+        words += ["--sketches", str(model.sketches)]
+    if model.prompt:
+        words += ["--prompt", str(model.prompt)]
+    data = getattr(datamanager, "data", None) or getattr(datamanager.dataparser, "data", None) or "<the base data>"
+    words += [dataparser_name(datamanager.dataparser), "--data", str(data)]
+    return shlex.join(words)
 
 
 def check_same_frame(base: BaseScene, here: DataparserTransform) -> None:

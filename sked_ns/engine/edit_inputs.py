@@ -10,13 +10,15 @@ of them would surface there, as a traceback, after the run folder is made and th
 from __future__ import annotations
 
 import copy
+import json
+import math
 from pathlib import Path
 
 import torch
 
 from sked_ns.engine.memory_plan import check_memory
 from sked_ns.engine.drawn_sketches import sketches_pending
-from sked_ns.errors import SkedFileNotFoundError, SkedUserError, reading
+from sked_ns.errors import SkedFileNotFoundError, SkedUserError, reading, warn
 from sked_ns.guidance import check_guidance
 from sked_ns.method.options import is_carving
 from sked_ns.engine.pipeline import refuse_multi_device
@@ -43,6 +45,58 @@ def check_edit_inputs(config) -> None:
     check_sketch_pixels(sketch_set, model.silhouette_resolution)
     check_sketches_in_data(config)
     check_memory(config)  # the plan printed; an edit that cannot fit on its GPU is refused with the options that do
+    check_disk_space(config)
+    warn_live_base(Path(model.base_checkpoint))
+
+
+def warn_live_base(checkpoint: Path) -> None:
+    """The edit reads its base's checkpoint whenever it is loaded (the frozen base is not copied into the edit's own):
+    a base still training may replace it (save_only_latest_checkpoint), leaving the edit unable to open."""
+    from sked_ns.run_lock import describe, holder, is_this_process
+
+    run = checkpoint.parent.parent
+    writer = holder(run)
+    if writer is not None and not is_this_process(writer):
+        warn(f"--load-dir {run}: that run is still training ({describe(writer)}); when it saves again it may remove "
+             f"{checkpoint.name}, which this edit reads whenever it is loaded. Wait for it to end, or copy the run "
+             "and edit the copy.")
+
+
+CHECKPOINT_MARGIN = 1.25
+"""An edit's checkpoint against its base's: the same modules and optimiser state, plus what the edit adds."""
+
+
+def _existing_ancestor(folder: Path) -> Path:
+    folder = Path(folder).absolute()
+    while not folder.exists() and folder.parent != folder:
+        folder = folder.parent
+    return folder
+
+
+def check_disk_space(config) -> None:
+    """The checkpoints must fit where they go, found now and not after the first hour of training: refused when the
+    first save cannot fit (a save writes the new checkpoint beside the last), warned when all that are kept cannot."""
+    import shutil
+
+    model = config.pipeline.model
+    sizes = [Path(model.base_checkpoint).stat().st_size] if model.base_checkpoint else []
+    if config.load_dir is not None:  # a resumed edit: its own checkpoints say it
+        sizes += [path.stat().st_size for path in Path(config.load_dir).glob("step-*.ckpt")]
+    if not sizes:
+        return
+    size = CHECKPOINT_MARGIN * max(sizes)
+    folder = config.get_checkpoint_dir()
+    free = shutil.disk_usage(_existing_ancestor(folder)).free
+    gb = 2**30
+    if free < 2 * size:
+        raise SkedUserError(f"--output-dir {config.output_dir}: {free / gb:.2f} GB free where the checkpoints go "
+                            f"({folder}), and a save needs about {2 * size / gb:.2f} GB (each checkpoint about "
+                            f"{size / gb:.2f} GB, the new one written beside the last). Free space there, or pass "
+                            "another --output-dir.")
+    saves = config.max_num_iterations // max(config.steps_per_save, 1) + 1
+    if not config.save_only_latest_checkpoint and free < saves * size:
+        warn(f"--save-only-latest-checkpoint False: the edit's {saves} checkpoints need about {saves * size / gb:.1f} "
+             f"GB, and {folder} has {free / gb:.1f} GB free; the later saves will fail.")
 
 
 def check_devices(machine) -> None:
@@ -69,6 +123,7 @@ def check_sketches_in_data(config, with_sketches: bool = True) -> None:
         raise SkedUserError("no --data: an edit reads the base's photos through the base's dataparser, typed after "
                             "every other flag (e.g. `nerfstudio-data --data <folder>`).")
     dataparser.data = Path(data)
+    check_finite_camera_file(dataparser.data)
     name = dataparser_name(dataparser)
     with reading(f"--data {dataparser.data}", f"Is it a dataset {name} reads? (give the dataparser after every "
                  "other flag, e.g. `nerfstudio-data --data <folder>`, as the base was trained)"):
@@ -77,10 +132,56 @@ def check_sketches_in_data(config, with_sketches: bool = True) -> None:
     check_photos_exist(outputs.image_filenames, f"--data {dataparser.data}")
     if model.base_checkpoint is not None:
         check_same_frame(resolve_base(Path(model.base_checkpoint)), outputs_transform(outputs))
+        check_photo_count(Path(model.base_checkpoint), len(outputs.image_filenames))
     if not with_sketches:
         return
     sketch_set = model_frame_sketches(model.sketches, metadata)
     compute_edit_box(sketch_set.views, scene_box=outputs.scene_box.aabb.numpy())
+
+
+def _first_non_finite(value, path: str):
+    """The JSON path of the first NaN or infinity in a parsed JSON value (Python's json reads them), or None."""
+    if isinstance(value, float) and not math.isfinite(value):
+        return path
+    items = value.items() if isinstance(value, dict) else enumerate(value) if isinstance(value, list) else ()
+    for key, item in items:
+        found = _first_non_finite(item, f"{path}.{key}" if isinstance(key, str) else f"{path}[{key}]")
+        if found:
+            return found
+    return None
+
+
+def check_finite_camera_file(data: Path) -> None:
+    """NaN or infinity in the data's transforms.json would turn into a scene scale of nan, reported as a frame
+    mismatch far from its cause: name the frame and field that hold it."""
+    path = data / "transforms.json" if data.is_dir() else data
+    if path.suffix != ".json" or not path.is_file():
+        return
+    try:
+        parsed = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, ValueError):
+        return  # unreadable: the dataparser says so, as it reads it
+    found = _first_non_finite(parsed, "")
+    if found:
+        field = found.lstrip(".")
+        frame = ""
+        if field.startswith("frames["):
+            index = int(field[len("frames["):].split("]")[0])
+            name = parsed["frames"][index].get("file_path") if isinstance(parsed["frames"][index], dict) else None
+            frame = f" (the frame of {name})" if name else ""
+        raise SkedUserError(f"{path}: {field}{frame} is not a finite number (NaN or infinity); fix that value, or "
+                            "pass the data the base was trained on.")
+
+
+def check_photo_count(checkpoint: Path, photos: int) -> None:
+    """A base with a per-photo appearance embedding (nerfacto) fits only its own photo count: refused here, before
+    the run folder exists, as the model's set-up would refuse it after."""
+    from sked_ns.method.frozen_base import read_model_state
+
+    embedding = read_model_state(checkpoint).get("field.embedding_appearance.embedding.weight")
+    if embedding is not None and embedding.shape[0] != photos:
+        raise SkedUserError(f"{checkpoint}: the base was trained on {embedding.shape[0]} images but --data has {photos}. "
+                            "Pass the base's own data and dataparser settings.")
 
 
 def check_photos_exist(filenames, where: str) -> None:

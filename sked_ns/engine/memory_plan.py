@@ -26,7 +26,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Dict, List, Optional, Tuple
 
-from sked_ns.errors import SkedUserError
+from sked_ns.errors import SkedUserError, warn
 
 GB = 2**30
 
@@ -252,9 +252,12 @@ _PRINTED: set = set()
 
 
 def _free_bytes(device: str) -> Optional[float]:
-    """Free memory of a CUDA device now; None elsewhere (a CPU edit is planned, not refused)."""
+    """Free memory of a CUDA device now, or what the kernel says a new process could use without swapping on the
+    CPU; None where it cannot tell."""
     import torch
 
+    if device == "cpu":
+        return _available_host_bytes()
     if not device.startswith("cuda") or not torch.cuda.is_available():
         return None
     return float(torch.cuda.mem_get_info(torch.device(device))[0])
@@ -266,9 +269,16 @@ def options_that_fit(config, free: float) -> List[str]:
 
     import torch
 
+    from sked_ns.method.options import SkedOptions
+    from sked_ns.models.registry import representation_of
+
     tries = []
     if torch.cuda.is_available() and torch.cuda.device_count() > 1 and hasattr(config.pipeline.model.guidance, "device"):
         tries.append(("--pipeline.model.guidance.device cuda:1", lambda c: setattr(c.pipeline.model.guidance, "device", "cuda:1")))
+    default_seeds = SkedOptions.num_seeds
+    if representation_of(config.pipeline.model).name == "splatfacto" and config.pipeline.model.num_seeds > default_seeds:
+        tries.append((f"--pipeline.model.num-seeds {default_seeds}",
+                      lambda c: setattr(c.pipeline.model, "num_seeds", default_seeds)))
     tries += [
         ("--pipeline.model.guidance-resolution 64 --pipeline.model.silhouette-resolution 64 (or ns-train sked-fast)",
          lambda c: (setattr(c.pipeline.model, "guidance_resolution", 64), setattr(c.pipeline.model, "silhouette_resolution", 64))),
@@ -301,6 +311,18 @@ def _available_host_bytes() -> Optional[float]:
     return None
 
 
+def _free_swap_bytes() -> float:
+    """Free swap (Linux; 0 elsewhere): a CPU edit may spill there, slowly, before it fails."""
+    try:
+        with open("/proc/meminfo") as handle:
+            for line in handle:
+                if line.startswith("SwapFree:"):
+                    return float(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    return 0.0
+
+
 UNCHUNKED_SHARE = 0.8
 """An unchunked step is chosen where the whole plan takes at most this share of the free memory."""
 
@@ -322,15 +344,14 @@ def choose_field_chunk(config, free: Optional[float]) -> int:
 
 def check_memory(config) -> MemoryPlan:
     """Choose the field chunk where the config leaves it to the plan; print the plan once; refuse, before anything
-    is written, an edit that cannot fit in the CUDA device's free memory, naming the options that would."""
+    is written, an edit that cannot fit in the CUDA device's free memory (a CPU edit: available memory and swap),
+    naming the options that would; warn a CPU edit that would swap."""
     from sked_ns.method.options import AUTO_FIELD_CHUNK
 
     options = config.pipeline.model
     if getattr(options, "field_chunk", 0) == AUTO_FIELD_CHUNK:
         device = config.machine.device_type
         free = _free_bytes("cuda:0" if device == "cuda" else device)
-        if free is None and device == "cpu":
-            free = _available_host_bytes()
         options.field_chunk = chosen = choose_field_chunk(config, free)
     else:
         chosen = None
@@ -343,11 +364,19 @@ def check_memory(config) -> MemoryPlan:
         _PRINTED.add(line)
         print(line + " (model: docs/benchmarks.md, Memory)", flush=True)
     free = _free_bytes(plan.device)
-    if free is not None and plan.peak > free:
-        fitting = options_that_fit(config, free)
+    on_cpu = plan.device == "cpu"
+    limit = free + _free_swap_bytes() if free is not None and on_cpu else free
+    if limit is not None and plan.peak > limit:
+        fitting = options_that_fit(config, limit)
+        where = "this machine, which has" if on_cpu else f"{plan.device}, which has"
+        available = "available (memory and swap)" if on_cpu else "free"
         raise SkedUserError(
-            f"this edit needs about {plan.peak / GB:.1f} GB on {plan.device}, which has {free / GB:.1f} GB free. "
+            f"this edit needs about {plan.peak / GB:.1f} GB on {where} {limit / GB:.1f} GB {available}. "
             + (f"Options that fit: {'; '.join(fitting)}." if fitting else
-               "None of the memory options fits alone: free the GPU, or use a larger one.")
+               "None of the memory options fits alone: lower the settings that grow it (render sizes, seeds), or "
+               "use a machine with more memory.")
             + " (docs/troubleshooting.md, Out of memory)")
+    if on_cpu and free is not None and plan.peak > free:
+        warn(f"this edit needs about {plan.peak / GB:.1f} GB, more than the {free / GB:.1f} GB of memory available "
+             "now: it will swap, and run many times slower.")
     return plan

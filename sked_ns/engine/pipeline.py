@@ -57,6 +57,8 @@ class SkedPipeline(VanillaPipeline):
             self.model.sketch_set, self.model.edit_box, config.model.silhouette_resolution, config.model.guidance_resolution
         )
         self._guidance_ready = False
+        if test_mode == "val":  # an edit about to train (not one loaded to render)
+            self.model.warn_if_off_base()
 
     def prepare_guidance(self) -> None:
         """Load the guidance once, just before the first training step (never for export)."""

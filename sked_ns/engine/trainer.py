@@ -13,6 +13,8 @@ from __future__ import annotations
 import contextlib
 import copy
 import pickle
+import shlex
+import sys
 import warnings
 from dataclasses import dataclass, field, fields
 from pathlib import Path
@@ -25,7 +27,7 @@ from nerfstudio.utils.decorators import check_main_thread
 from nerfstudio.utils.rich_utils import CONSOLE
 
 from sked_ns.atomic import publish_atomically, write_text_atomically
-from sked_ns.engine.base_scene import BaseScene, checkpoint_step, dataparser_command, resolve_base
+from sked_ns.engine.base_scene import BaseScene, checkpoint_step, dataparser_command, resolve_base, restart_command
 from sked_ns.errors import SkedFileNotFoundError, SkedUserError, check_writable_folder
 from sked_ns.engine.resume import preset_config, resumed_config, typed_settings
 from sked_ns.run_lock import hold, write_failure
@@ -205,6 +207,10 @@ class SkedTrainer(Trainer):
                                              device=self.device.split(":")[0])
 
     def setup(self, test_mode="val") -> None:
+        with self._interruptible(training=False):
+            self._setup(test_mode)
+
+    def _setup(self, test_mode: str) -> None:
         resolve_edit(self.config)
         self.skipped_steps = 0
         # fp16 on CUDA; tests set it on the CPU (where nerfstudio turns mixed precision off) to prove fp16 safety.
@@ -245,7 +251,20 @@ class SkedTrainer(Trainer):
     def train(self) -> None:
         # An edit's length is its total: nerfstudio 1.1.5 runs max_num_iterations more steps after a resume.
         self.config.max_num_iterations = max(self.config.max_num_iterations - self._start_step, 1)
-        super().train()
+        with self._interruptible(training=True):
+            super().train()
+
+    @contextlib.contextmanager
+    def _interruptible(self, training: bool):
+        """Ctrl-C: one line saying where the edit stopped and how to go on, and exit status 130 (nerfstudio's
+        launch would print the traceback and exit 0, so a script could not tell an interrupted edit from a done one)."""
+        try:
+            yield
+        except KeyboardInterrupt:
+            # Plain print: rich would wrap the command and read brackets in paths or prompts as markup.
+            step = getattr(self, "step", None) if training else None  # nerfstudio's loop sets it at each step
+            print(interrupted_line(self.config, step), file=sys.stderr, flush=True)
+            raise SystemExit(INTERRUPTED_STATUS) from None
 
     def setup_optimizers(self) -> GuardedOptimizers:
         return GuardedOptimizers(super().setup_optimizers(), self.step_guard)
@@ -287,12 +306,33 @@ class SkedTrainer(Trainer):
             raise write_failure(path, error, "checkpoint") from error
         finally:
             self.checkpoint_dir = checkpoint_dir
-        with contextlib.suppress(OSError):
-            staging.rmdir()
+            # A save cut short (full disk, Ctrl-C) leaves no partial file to keep the disk full.
+            with contextlib.suppress(OSError):
+                (staging / path.name).unlink(missing_ok=True)
+            with contextlib.suppress(OSError):
+                staging.rmdir()
         if self.config.save_only_latest_checkpoint:
             for older in checkpoint_dir.glob("*.ckpt"):
                 if older != path:
                     older.unlink()
+
+
+INTERRUPTED_STATUS = 130
+"""A shell's status for a command stopped by Ctrl-C (128 + SIGINT)."""
+
+
+def interrupted_line(config: TrainerConfig, step: Optional[int]) -> str:
+    """Where an interrupted edit stands: its step, its last checkpoint, and the command that goes on from it."""
+    run = config.get_base_dir()
+    checkpoints = sorted(config.get_checkpoint_dir().glob("step-*.ckpt"), key=checkpoint_step)
+    where = "while setting up" if step is None else f"at step {step}"
+    if checkpoints:
+        return (f"interrupted {where}; its last checkpoint is step {checkpoint_step(checkpoints[-1])}: resume with "
+                f"ns-train sked --load-dir {shlex.quote(str(run))}")
+    if not (run / "config.yml").exists():
+        return f"interrupted {where}, before the edit wrote anything: run the same command again to start it."
+    return (f"interrupted {where}, before the edit's first checkpoint: nothing to resume. Start it again with "
+            f"{restart_command(config)} (its other settings are in {run / 'config.yml'})")
 
 
 @contextlib.contextmanager

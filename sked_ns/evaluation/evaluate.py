@@ -21,7 +21,8 @@ from typing import Dict, Optional
 import numpy as np
 import torch
 
-from sked_ns.errors import SkedUserError
+from sked_ns.engine.base_scene import checkpoint_step
+from sked_ns.errors import SkedUserError, warn
 from sked_ns.atomic import publish_atomically, write_text_atomically
 from sked_ns.evaluation import novel_views
 from sked_ns.evaluation.eval_inputs import (check_base, check_device, check_flags, check_sketch_masks, checked_sketches,
@@ -32,7 +33,7 @@ from sked_ns.evaluation.clip_score import DEFAULT_CLIP, ClipScorer, orbit_camera
 from sked_ns.sketches.random_views import focal_from_fov
 from sked_ns.evaluation.render import load_pipeline, render_at, render_base_at, render_camera, resized_mask
 from sked_ns.progress import Progress
-from sked_ns.run_lock import writing
+from sked_ns.run_lock import describe, holder, writing
 from sked_ns.sketches.cameras import cameras_of
 
 
@@ -167,6 +168,8 @@ def evaluate(edit_run: Path, base_run: Optional[Path] = None, sketches: Optional
     keys = [key for key in views[0] if key != "view"]
     result = {
         "edit_run": str(edit.run_dir),
+        "step": edit_pipeline.sked_loaded_step,
+        "checkpoint": str(edit_pipeline.sked_loaded_checkpoint),
         "base_run": str(base_run),
         "sketches": str(sketches),
         "resolution": resolution,
@@ -190,6 +193,22 @@ def evaluate(edit_run: Path, base_run: Optional[Path] = None, sketches: Optional
                                                  mode="bilinear")[0].permute(1, 2, 0) for row in novel.pop("rows")]
         result["novel_views"] = {"cameras": source, "resolution": novel_resolution, **novel}
     return {"metrics": result, "sheet": torch.cat(rows, dim=0)}
+
+
+def check_live_run(edit, output: Path, sheet: Path) -> None:
+    """An edit still training has one writer, its trainer: refused when sked-eval would write into its run folder,
+    else warned that the scored checkpoint is the latest so far."""
+    writer = holder(edit.run_dir)
+    if writer is None:
+        return
+    step = checkpoint_step(edit.checkpoint)
+    inside = [str(path) for path in (output, sheet) if edit.run_dir.resolve() in path.resolve().parents]
+    if inside:
+        raise SkedUserError(f"sked-eval {edit.run_dir}: the edit is still training ({describe(writer)}), and its run "
+                            f"folder has one writer. Wait for it to end, or pass --output and --sheet outside the run "
+                            f"folder to score its latest checkpoint now (step {step}).")
+    warn(f"sked-eval {edit.run_dir}: the edit is still training ({describe(writer)}); scoring its latest checkpoint "
+         f"so far, step {step} (the results record it).")
 
 
 def write_outputs(outcome: dict, output: Path, sheet: Path) -> None:
@@ -216,6 +235,7 @@ def main(args) -> None:
     _, sketch_set = checked_sketches(args.sketches, edit.model_config)
     check_sketch_masks(sketch_set, args.resolution)
     output, sheet = output_paths(run, args.output, args.sheet, args.overwrite)
+    check_live_run(edit, output, sheet)
     hint = "Wait for it to end, or pass another --output (and --sheet)."
     with contextlib.ExitStack() as outputs:  # their one writer, from the check that they may be written on
         for path in dict.fromkeys((output, sheet)):
@@ -228,7 +248,7 @@ def main(args) -> None:
     print(sketch_summary(outcome["metrics"]))
     if "novel_views" in outcome["metrics"]:
         print(novel_summary(outcome["metrics"]["novel_views"]))
-    print(f"wrote {output} and {sheet}")
+    print(f"wrote {output} and {sheet} (the edit at step {outcome['metrics']['step']})")
 
 
 def sketch_summary(metrics: Dict) -> str:

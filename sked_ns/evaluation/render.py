@@ -101,4 +101,6 @@ def load_pipeline(run_dir: Path, device: str = "cpu", flag: str = "--load-dir", 
         pipeline = run.config.pipeline.setup(device=device, test_mode="test")
     state = torch.load(run.checkpoint, map_location="cpu")
     pipeline.load_pipeline(state["pipeline"], state["step"])
+    # What was scored, recorded by sked-eval: a run still training gets newer checkpoints meanwhile.
+    pipeline.sked_loaded_step, pipeline.sked_loaded_checkpoint = int(state["step"]), run.checkpoint
     return pipeline.eval()

@@ -45,8 +45,11 @@ from sked_ns.method.options import SkedOptions, warn_degenerate_settings
 from sked_ns.method.photo_anchor import check_base_explains_photos, editable_box
 from sked_ns.method.preservation import SketchDistanceField, check_beta
 from sked_ns.method.validation import check_sketch_pixels
+from sked_ns.errors import warn
 
 TINT = (1.0, 0.2, 0.2)
+SKETCH_REACH = 0.5
+"""How far around the edit box, as a share of its size, the base's content is looked for (warn_if_off_base)."""
 """The viewer's tint where the edit may act."""
 
 
@@ -98,6 +101,22 @@ class SkedEdit:
         check_sketch_pixels(sketch_set, self.config.silhouette_resolution)
         self.guidance: Optional[Guidance] = None  # plain attribute: never in a checkpoint
         self._add_viewer_controls()
+
+    def warn_if_off_base(self) -> None:
+        """Sketches drawn on another scene, or posed in another frame, meet in empty space: the edit would add content
+        in the air and every check of the sketches alone passes. Warned when neither the edit box nor the space around
+        it (SKETCH_REACH of its size each side) holds any of the base's content."""
+        reach = SKETCH_REACH * (self.edit_box.max - self.edit_box.min)
+        low, high = self.edit_box.min - reach, self.edit_box.max + reach
+        if not self.base_content_near(low, high):
+            warn(f"{self.config.sketches}: the sketches meet in empty space, with none of the base's content in or "
+                 f"near their region (x, y, z from {np.round(self.edit_box.min, 3).tolist()} to "
+                 f"{np.round(self.edit_box.max, 3).tolist()}). Were they drawn on another scene, or are their poses "
+                 "in another frame? Look at them in the viewer (the edit box is shown) before a long edit.")
+
+    def base_content_near(self, low: np.ndarray, high: np.ndarray) -> bool:
+        """Whether the frozen base holds opaque content in the box [low, high] (model frame)."""
+        raise NotImplementedError
 
     # ---- steering in the viewer ----------------------------------------------------------------
     def _add_viewer_controls(self) -> None:

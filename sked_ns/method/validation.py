@@ -23,9 +23,11 @@ LARGE_GUIDANCE_RESOLUTION = 512
 """Stable Diffusion's own input size; the paper renders 128 and upsamples."""
 SMALL_GUIDANCE_RESOLUTION = 32
 SMALL_FIELD_CHUNK = 1024
+"""Fewer field samples per checkpointed chunk than this cost calls, not memory."""
 SMALL_PROPOSAL_GRID = 32
 """Base proposal grids coarser than this (cells a side) are warned: they blur the base's surfaces."""
-"""Fewer field samples per checkpointed chunk than this cost calls, not memory."""
+MAX_SEEDS = 10_000_000
+"""New Gaussians a splat edit may start with: more than most whole scenes hold (each is 708 bytes with Adam's)."""
 
 
 def _is_whole(value) -> bool:
@@ -73,8 +75,9 @@ def option_problems(options) -> List[str]:
         problems.append(f"{flag('keep_threshold')} {options.keep_threshold!r}: a preservation weight, must be in (0, 1] "
                         "(default 0.99; 1 holds nothing exactly, the paper's soft L_pres alone).")
     # Gaussian-splat bases' settings.
-    if not (_is_whole(options.num_seeds) and options.num_seeds >= 0):
-        problems.append(f"{flag('num_seeds')} {options.num_seeds!r}: must be a whole number of Gaussians >= 0.")
+    if not (_is_whole(options.num_seeds) and 0 <= options.num_seeds <= MAX_SEEDS):
+        problems.append(f"{flag('num_seeds')} {options.num_seeds!r}: must be a whole number of Gaussians from 0 to "
+                        f"{MAX_SEEDS:,} (default 3,000).")
     if not (is_number(options.seed_opacity) and 0 < options.seed_opacity < 1):
         problems.append(f"{flag('seed_opacity')} {options.seed_opacity!r}: an opacity, must be in (0, 1) "
                         "(default 0.005; under 1/255 a seed gets no gradient).")

@@ -277,6 +277,7 @@ def abandon_unstarted(config: SkedTrainerConfig) -> None:
     release(run)
     for name in (LOCK_NAME, config.viewer.relative_log_filename):
         (run / name).unlink(missing_ok=True)
-    for folder in (config.get_checkpoint_dir(), run):
+    # The run folder, then its method and experiment folders where the run made them and nothing else is there.
+    for folder in (config.get_checkpoint_dir(), run, run.parent, run.parent.parent):
         with contextlib.suppress(OSError):  # not empty: something else is there, left alone
             folder.rmdir()

@@ -26,6 +26,10 @@ class SessionTrainer(SkedTrainer):
     """The session this trainer's round belongs to; None for an edit given --sketches."""
 
     def setup(self, test_mode="val") -> None:
+        with self._interruptible(training=False):  # ctrl+c while the user draws: one line, status 130
+            self._setup_session(test_mode)
+
+    def _setup_session(self, test_mode: str) -> None:
         if self.session is None:
             resolve_edit(self.config)
             if sketches_pending(self.config):  # the viewer opens on the base; training waits for the sketch set
@@ -51,7 +55,8 @@ class SessionTrainer(SkedTrainer):
     def train(self) -> None:
         super().train()
         if self.session is not None and self.session.first is self:  # Edit again's rounds, in this process
-            self.session.run_rounds(self)
+            with self._interruptible(training=True):
+                self.session.run_rounds(self)
 
     def _train_complete_viewer(self) -> None:
         if self.session is None:

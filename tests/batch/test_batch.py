@@ -606,3 +606,15 @@ def test_a_dry_run_prints_command_lines_a_shell_runs_as_planned(tmp_path, capsys
                            text=True, check=True).stdout
     assert shown.split("\0")[:-1] == expected
     assert prompt in expected and str(scene["sketches"]) in expected
+
+
+@pytest.mark.parametrize("argv, message", [([], r"sked-batch: the following arguments are required: plan"),
+                                           (["p.yml"], r"sked-batch: one of the arguments --local --slurm is required"),
+                                           (["status"], r"sked-batch status: the following arguments are required"),
+                                           (["p.yml", "--local", "--bogus"], r"unrecognized arguments: --bogus")])
+def test_a_bad_command_line_is_one_error_line_without_argparse_s_usage(argv, message, capsys):
+    from sked_ns.batch.cli import main
+
+    with pytest.raises(SkedUserError, match=message + r".*\(see sked-batch.*--help\)\."):
+        main(argv)
+    assert "usage:" not in capsys.readouterr().err

@@ -138,3 +138,23 @@ def test_painted_canvases_import_as_a_sketch_set(tmp_path):
     assert _iou(loaded.views[0].mask, truths[0]) > 0.9 and np.array_equal(loaded.views[1].mask, truths[1])
     for saved, camera in zip(loaded.in_model_frame(TRANSFORM).views, cameras):
         np.testing.assert_allclose(saved.camera_to_world, camera.camera_to_world, atol=1e-6)
+
+
+@pytest.mark.parametrize("held", ["sketches.json", "view_00.png", "notes/"])
+def test_canvases_go_into_a_new_folder_only_refused_before_the_base_loads(tmp_path, monkeypatch, held):
+    from sked_ns.drawing import sketch_viewer
+
+    folder = tmp_path / "set"
+    folder.mkdir()
+    (folder / held).mkdir() if held.endswith("/") else (folder / held).write_text("the user's")
+    before = sorted(p.name for p in folder.iterdir())
+    monkeypatch.setattr(sketch_viewer, "_load", lambda *args: pytest.fail("loaded the base"))
+    kind = "a sketch set" if held == "sketches.json" else "1 file"
+    with pytest.raises(FileExistsError, match=rf"sked-sketch canvases: {folder} already holds {kind}.*new folder"):
+        sketch_viewer.entrypoint(["canvases", str(tmp_path / "base"), str(folder), "--images", "0"])
+    assert sorted(p.name for p in folder.iterdir()) == before
+    if not held.endswith("/"):
+        assert (folder / held).read_text() == "the user's"
+    with pytest.raises(FileExistsError, match="already holds"):  # the writer itself checks too
+        write_canvases(_render, [next(iter(_hat_views()))[0]], TRANSFORM, folder)
+    write_canvases(_render, [next(iter(_hat_views()))[0]], TRANSFORM, tmp_path / "empty")  # a new folder is fine

@@ -242,9 +242,29 @@ def test_unsupported_base_method(scene, tmp_path):
 def test_data_that_does_not_match_the_base(scene, tmp_path):
     demo_scene.write_demo_dataset(tmp_path / "other", num_views=12)
     config = edit_config(scene["base"], tmp_path / "other", scene["sketches"], tmp_path / "out", iterations=2)
-    resolve_edit(config)
+    with pytest.raises(SkedUserError, match="trained on 22 images but --data has 11"):
+        resolve_edit(config)  # before the run folder is made
+    assert not (tmp_path / "out").exists()
     with pytest.raises(ValueError, match="trained on 22 images but --data has 11"):
-        config.pipeline.setup(device="cpu", test_mode="val")
+        config.pipeline.setup(device="cpu", test_mode="val")  # from Python, without resolve_edit
+
+
+@pytest.mark.parametrize("value", ["NaN", "Infinity"])
+def test_non_finite_numbers_in_the_data_s_transforms_are_named_by_frame_and_field(scene, tmp_path, value):
+    import json
+
+    data = tmp_path / "data"
+    shutil.copytree(scene["data"], data)
+    text = (data / "transforms.json").read_text()
+    parsed = json.loads(text)
+    parsed["frames"][3]["transform_matrix"][1][3] = float(value.replace("Infinity", "inf"))
+    (data / "transforms.json").write_text(json.dumps(parsed))
+    config = edit_config(scene["base"], data, scene["sketches"], tmp_path / "out", iterations=2)
+    name = parsed["frames"][3]["file_path"]
+    with pytest.raises(SkedUserError, match=rf"transforms.json: frames\[3\].transform_matrix\[1\]\[3\] \(the frame of "
+                                            rf"{name}\) is not a finite number"):
+        resolve_edit(config)
+    assert not (tmp_path / "out").exists()
 
 
 def test_data_through_another_dataparser_is_refused(scene, tmp_path):
@@ -492,3 +512,40 @@ def test_ns_render_makes_a_video_of_an_edited_scene(edited, tmp_path):
     frames = mediapy.read_video(str(video))
     assert len(frames) >= 20 and frames.shape[2] == 2 * frames.shape[1], "rgb and preservation weight side by side"
     assert frames.std() > 5, "not a blank video"
+
+
+def test_sketches_of_another_scene_are_warned_before_training(scene, tmp_path):
+    """The authors' cat sketches on the demo sphere meet in empty space: every check of the set alone passes."""
+    import warnings
+
+    from sked_ns.drawing.authors_import import import_authors_sketches
+
+    cat = Path(__file__).resolve().parents[1] / "data" / "sked-authors-cat"
+    save_sketch_set(import_authors_sketches(cat), tmp_path / "cat")
+    for sketches, off in ((tmp_path / "cat", True), (scene["sketches"], False)):
+        config = edit_config(scene["base"], scene["data"], sketches, tmp_path / "out", iterations=2,
+                             guidance_resolution=16, silhouette_resolution=16)
+        resolve_edit(config)
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            config.pipeline.setup(device="cpu", test_mode="val")
+            config.pipeline.setup(device="cpu", test_mode="test")  # an edit loaded to render: not warned again
+        said = [str(w.message) for w in caught if "meet in empty space" in str(w.message)]
+        assert len(said) == (1 if off else 0), said
+        if off:
+            assert said[0].startswith(f"{sketches}: the sketches meet in empty space")
+
+
+def test_a_splat_base_s_content_is_its_opaque_gaussians_in_the_box():
+    from types import SimpleNamespace
+
+    import numpy as np
+
+    from sked_ns.models.splat.model import SkedSplatModel
+
+    means = torch.tensor([[0.0, 0.0, 0.0], [2.0, 2.0, 2.0]])
+    for opacity, low, high, expected in ((0.9, -0.1, 0.1, True), (0.2, -0.1, 0.1, False), (0.9, 0.5, 1.5, False),
+                                         (0.9, 1.5, 2.5, True)):
+        model = SimpleNamespace(frozen_gaussians={"means": means,
+                                                  "opacities": torch.logit(torch.tensor([[opacity], [opacity]]))})
+        assert SkedSplatModel.base_content_near(model, np.full(3, low), np.full(3, high)) is expected

@@ -131,17 +131,23 @@ def test_an_edit_that_cannot_fit_is_refused_with_the_options_that_do(scene, tmp_
     small = memory_plan.plan_edit(_resolved(scene, tmp_path / "small", guidance_resolution=64,
                                             silhouette_resolution=64)).peak
     assert small < plan.peak
-    # A GPU with room for the 64 px edit but not the 128 px one: refused, naming the option that fits.
+    # A machine with room for the 64 px edit but not the 128 px one: refused, naming the option that fits.
+    monkeypatch.setattr(memory_plan, "_free_swap_bytes", lambda: 0.0)
     monkeypatch.setattr(memory_plan, "_free_bytes", lambda device: (small + plan.peak) / 2)
     config = _config(scene, tmp_path, guidance_resolution=128, silhouette_resolution=128)
     with pytest.raises(SkedUserError) as refused:
         resolve_edit(config)
     message = str(refused.value)
-    assert "--pipeline.model.guidance-resolution 64" in message and "free" in message
+    assert "--pipeline.model.guidance-resolution 64" in message and "this machine" in message and "swap" in message
     assert not (tmp_path / "out").exists()  # refused before anything is written
     monkeypatch.setattr(memory_plan, "_free_bytes", lambda device: small / 10)
     with pytest.raises(SkedUserError, match="None of the memory options fits"):
         resolve_edit(_config(scene, tmp_path, guidance_resolution=128, silhouette_resolution=128))
+    # Swap can hold it: it runs, with a warning that it will swap.
+    monkeypatch.setattr(memory_plan, "_free_swap_bytes", lambda: 2.0 * plan.peak)
+    with pytest.warns(UserWarning, match="it will swap"):
+        resolve_edit(_config(scene, tmp_path, guidance_resolution=128, silhouette_resolution=128))
+    assert not (tmp_path / "out").exists()
 
 
 def _resolved(scene, tmp_path, **model):

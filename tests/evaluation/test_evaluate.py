@@ -187,3 +187,28 @@ def test_the_edit_is_named_once_as_a_path_or_as_nerfstudio_s_load_config(tmp_pat
     for argv in ([], [str(run), "--load-config", str(run)]):
         with pytest.raises(SkedUserError, match="give the edited run once"):
             parse(argv)
+
+
+def test_an_edit_still_training_is_scored_only_from_outside_its_run_folder_and_its_step_recorded(
+        tiny_edit, tmp_path, monkeypatch, capsys):
+    from lock_helpers import holding, killed
+
+    from sked_ns.engine.base_scene import checkpoint_step, resolve_base
+
+    step = checkpoint_step(resolve_base(tiny_edit).checkpoint)
+    trainer = holding(tiny_edit)  # the edit's trainer, as ns-train holds its run folder
+    try:
+        with pytest.raises(SkedUserError, match=rf"the edit is still training \(pid {trainer.pid} .*one writer.*"
+                                                rf"--output and --sheet outside the run folder.*step {step}\)"):
+            sked_eval(monkeypatch, tiny_edit / "config.yml", "--resolution", 16, "--cameras", "none",
+                      "--clip-views", 1, "--clip-resolution", 16)
+        assert not (tiny_edit / "sked_eval.json").exists() and not (tiny_edit / "sked_eval.png").exists()
+        output = tmp_path / "live.json"
+        with pytest.warns(UserWarning, match=rf"still training \(pid {trainer.pid}.*latest checkpoint so far, step {step}"):
+            sked_eval(monkeypatch, tiny_edit / "config.yml", "--output", output, "--resolution", 16, "--cameras",
+                      "none", "--clip-views", 1, "--clip-resolution", 16)
+    finally:
+        killed(trainer)
+    metrics = json.loads(output.read_text())
+    assert metrics["step"] == step and metrics["checkpoint"].endswith(f"step-{step:09d}.ckpt")
+    assert f"(the edit at step {step})" in capsys.readouterr().out

@@ -45,6 +45,20 @@ def test_the_hook_prints_user_errors_alone_and_chains_the_rest(monkeypatch, caps
     assert seen == [KeyError, SkedUserError] and capsys.readouterr().err == ""
 
 
+def test_ctrl_c_in_a_sked_command_is_one_line_with_status_130_and_elsewhere_untouched(tmp_path):
+    import subprocess
+
+    script = tmp_path / "sked-eval"  # a command named as the installed ones are
+    script.write_text("import time, sked_ns\nraise KeyboardInterrupt\n")
+    result = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=300)
+    assert result.stderr == "interrupted: sked-eval stopped by Ctrl-C; what it had written whole is kept.\n"
+    assert result.returncode == -2  # killed by SIGINT, as a shell reports with status 130
+    other = tmp_path / "ns-render"
+    other.write_text(script.read_text())
+    result = subprocess.run([sys.executable, str(other)], capture_output=True, text=True, timeout=300)
+    assert "Traceback" in result.stderr and "interrupted:" not in result.stderr  # not SKED's: not ours to change
+
+
 def test_the_plugin_installs_the_hook_once():
     import sked_ns  # noqa: F401  (every ns-* command imports it through the method registry)
 

@@ -35,7 +35,7 @@ def test_a_negative_or_non_finite_weight_is_refused_by_its_flag(name, value):
     ("samples_per_ray_scale", float("nan")), ("occupancy_threshold", -1.0), ("photo_threshold", 1.5),
     ("photo_threshold", -0.1), ("guidance_resolution", 0), ("guidance_resolution", -64),
     ("silhouette_resolution", 0), ("silhouette_resolution", -1), ("silhouette_resolution", 12.5),
-    ("edit_box_warmup", -1), ("keep_threshold", 0.0), ("keep_threshold", 1.5), ("num_seeds", -1), ("num_seeds", 10.5),
+    ("edit_box_warmup", -1), ("keep_threshold", 0.0), ("keep_threshold", 1.5), ("num_seeds", -1), ("num_seeds", 10.5), ("num_seeds", 1_000_000_000),
     ("seed_opacity", 0.0), ("seed_opacity", 1.0), ("seed_size", 0.0), ("seed_size", float("inf")),
     ("splat_supersampling", 0), ("splat_supersampling", 1.5),
 ])

@@ -166,7 +166,10 @@ def test_ns_train_without_sketches_opens_the_session_and_ctrl_c_leaves_no_run(sc
     finally:
         process.kill()
     assert not runs[0].parent.exists(), "the abandoned session leaves no run folder"
-    assert "Traceback" not in output.split("KeyboardInterrupt")[0] or "KeyboardInterrupt" in output, output[-2000:]
+    assert not list((tmp_path / "out").rglob("*")), "nor the empty folders above it"
+    assert "Traceback" not in output and "KeyboardInterrupt" not in output, output[-2000:]
+    assert "interrupted while setting up, before the edit wrote anything" in output, output[-2000:]
+    assert process.returncode == 130, output[-2000:]
 
 
 def test_no_sketches_without_the_viewer_is_refused_naming_both_ways(scene, tmp_path):

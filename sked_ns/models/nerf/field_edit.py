@@ -16,6 +16,7 @@ import contextlib
 from pathlib import Path
 from typing import Dict, List, Optional, Sequence, Tuple
 
+import numpy as np
 import torch
 from nerfstudio.cameras.rays import RayBundle, RaySamples
 from nerfstudio.field_components.encodings import HashEncoding
@@ -132,6 +133,17 @@ class SkedMixin(SkedEdit):
         super()._freeze_base(**modules)
         # Torch hash grids without a host copy per call, the edit's and the frozen base's (hash_grid.py).
         use_fast_hash_grids(self, *self.frozen_base.modules())
+
+    @torch.no_grad()
+    def base_content_near(self, low: np.ndarray, high: np.ndarray, points_per_side: int = 16) -> bool:
+        """Opaque over one lattice step (opacity above a half) at any point of a lattice over the box."""
+        device = self.edit_box_bounds.device
+        steps = torch.linspace(0.0, 1.0, points_per_side, device=device)
+        unit = torch.stack(torch.meshgrid(steps, steps, steps, indexing="ij"), dim=-1).reshape(-1, 3)
+        low_t, high_t = (torch.as_tensor(v, dtype=torch.float32, device=device) for v in (low, high))
+        density = self.base_field.density_fn(low_t + unit * (high_t - low_t))
+        step = float(np.max(high - low)) / (points_per_side - 1)
+        return bool((-torch.expm1(-density.float() * step)).max() > 0.5)
 
     @property
     def base_field(self):

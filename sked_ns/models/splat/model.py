@@ -27,6 +27,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Dict, List, Optional, Tuple, Type
 
+import numpy as np
 import torch
 from gsplat.strategy import DefaultStrategy
 from nerfstudio.cameras.camera_optimizers import CameraOptimizerConfig
@@ -127,6 +128,15 @@ class SkedSplatModel(EditableRefinement, SplatPhotoAnchor, SkedEdit, SplatfactoM
         self.strategy_state = self.strategy.initialize_state(scene_scale=1.0)
         self._step_infos: List[Dict] = []
         self._photo_pixels: Dict[Tuple, Tensor] = {}
+
+    @torch.no_grad()
+    def base_content_near(self, low: np.ndarray, high: np.ndarray) -> bool:
+        """A base Gaussian more opaque than a half has its centre in the box."""
+        means = self.frozen_gaussians["means"]
+        low_t, high_t = (torch.as_tensor(v, dtype=means.dtype, device=means.device) for v in (low, high))
+        inside = ((means >= low_t) & (means <= high_t)).all(dim=-1)
+        opaque = torch.sigmoid(self.frozen_gaussians["opacities"]).reshape(-1) > 0.5
+        return bool((inside & opaque).any())
 
     def _read_base(self) -> Dict[str, Tensor]:
         checkpoint = self.config.base_checkpoint
