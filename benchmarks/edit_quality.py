@@ -79,7 +79,8 @@ def ns_train(arguments: List[str]) -> List[str]:
 def fit_splat_base(scene: str, data: Path, output: Path, fit: Dict, log: Path) -> Path:
     """A splatfacto run of the scene's photos, fitted on the CPU; its fit's PSNR goes to `log` (JSON)."""
     from sked_ns.demo.scenes.catalogue import scene_named
-    from sked_ns.demo.splat_base import SplatFit, dataset_point_cloud, fit_splat_base as fit_base, last_fit
+    from sked_ns.demo.splat_base import SplatFit, dataset_point_cloud, last_fit
+    from sked_ns.demo.splat_base import fit_splat_base as fit_base
 
     run_dir = output / "splat-base" / "splatfacto" / "base"
     if not (run_dir / "nerfstudio_models").exists():
@@ -192,8 +193,8 @@ def sketch_view_fill(edit_run: Path, scene: str, sketches: Path, resolution: int
     """Region IoS over the sketch pixels where the exact target shows the added part (`ios_visible`), and the
     region IoS the exact target itself scores (`ios_region_perfect`): a sketch holds the part's hidden
     pixels too, so a correct edit cannot fill all of it, and region IoS alone cannot say how far it is off."""
-    from sked_ns.method.preservation import SketchDistanceField
     from sked_ns.evaluation.render import load_pipeline, render_at, render_base_at
+    from sked_ns.method.preservation import SketchDistanceField
     from sked_ns.sketches.sketch_set import load_sketch_set
 
     model = load_pipeline(edit_run).model
@@ -219,10 +220,10 @@ def view_fill(scene: str, data_view, field, beta: float, resolution: int, editab
     (the sketches' SketchDistanceField) gives its preservation weight."""
     import torch
 
-    from sked_ns.sketches.sketch_set import sketch_view_at
-    from sked_ns.demo.scenes.objects import visible_added_part
     from sked_ns.demo.scenes.catalogue import scene_named
+    from sked_ns.demo.scenes.objects import visible_added_part
     from sked_ns.evaluation.metrics import intersection_over_sketch
+    from sked_ns.sketches.sketch_set import sketch_view_at
 
     camera, mask = sketch_view_at(data_view, resolution)
     truth = visible_added_part(scene_named(scene), np.asarray(data_view.camera_to_world)[:3], float(camera.fx),

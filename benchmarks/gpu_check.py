@@ -469,9 +469,10 @@ def environment(args) -> dict:
     info = {"python": platform.python_version(), "torch": torch.__version__, "cuda": torch.version.cuda,
             "device": torch.cuda.get_device_name() if args.device == "cuda" else f"{platform.machine()} CPU"}
     try:
+        from importlib.metadata import version
+
         import nerfacc
         import nerfstudio  # noqa: F401
-        from importlib.metadata import version
 
         info["nerfstudio"] = version("nerfstudio")
         info["nerfacc"] = nerfacc.__version__
@@ -536,11 +537,12 @@ def main() -> None:
     check.write()
 
     os.environ.setdefault("HF_HUB_OFFLINE", "1")  # never the hub: the diffusion model is built here, random weights
-    from sked_ns.demo.scenes import sphere as demo_scene
+    from sds_iteration import build_random_stable_diffusion
+
     from sked_ns.demo.base import TinyNerfacto, build_demo_base
+    from sked_ns.demo.scenes import sphere as demo_scene
     from sked_ns.demo.splat_base import SplatFit, fit_demo_splat_base
     from sked_ns.sketches.sketch_set import save_sketch_set
-    from sds_iteration import build_random_stable_diffusion
 
     with tempfile.TemporaryDirectory() as scratch:
         work = args.workdir or Path(scratch)

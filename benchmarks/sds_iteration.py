@@ -149,8 +149,8 @@ def main() -> None:
     parser.add_argument("--workdir", type=Path, default=None)
     args = parser.parse_args()
 
-    from sked_ns.demo.scenes import sphere as demo_scene
     from sked_ns.demo.base import build_demo_base
+    from sked_ns.demo.scenes import sphere as demo_scene
     from sked_ns.engine.edit_run import edit_config
     from sked_ns.sketches.sketch_set import save_sketch_set
 

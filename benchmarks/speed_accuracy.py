@@ -85,8 +85,8 @@ def plan(device: str, quick: bool) -> list[dict]:
 
 def prepare(workdir: Path, hash_sizes, base_steps: int = 400) -> dict:
     """The demo dataset, one tiny base per hash-grid size, and the three scenes' sketch sets."""
-    from sked_ns.demo.scenes import sphere as demo_scene
     from sked_ns.demo.base import TinyNerfacto, build_demo_base
+    from sked_ns.demo.scenes import sphere as demo_scene
     from sked_ns.sketches.sketch_set import save_sketch_set
 
     data = workdir / "data"

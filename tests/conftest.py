@@ -85,8 +85,8 @@ def random_view(rng: np.random.Generator, width: int, height: int, name: str = "
 @pytest.fixture(scope="session")
 def scene(tmp_path_factory):
     """The demo dataset, a tiny nerfacto base fitted to it (a real run folder) and hat sketches."""
-    from sked_ns.demo.scenes import sphere as demo_scene
     from sked_ns.demo.base import build_demo_base
+    from sked_ns.demo.scenes import sphere as demo_scene
     from sked_ns.sketches.sketch_set import save_sketch_set
 
     root = tmp_path_factory.mktemp("scene")

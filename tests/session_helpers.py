@@ -28,7 +28,6 @@ def session_config(scene, output_dir: Path, sd_folder: Path, iterations: int = 4
     """`ns-train sked --load-dir BASE --max-num-iterations N <dataparser> --data DATA`, the viewer on a free port and
     Stable Diffusion the tiny one in `sd_folder`."""
     from sked_ns.engine.edit_run import edit_config
-
     from sked_ns.session.trainer import SessionTrainer
 
     config = edit_config(scene["base"], scene["data"], scene["sketches"], output_dir, iterations=iterations,

@@ -6,7 +6,6 @@ import json
 from pathlib import Path
 
 import torch
-
 from tiny_sd import _bytes_to_unicode
 
 

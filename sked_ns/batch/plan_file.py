@@ -8,9 +8,24 @@ import tempfile
 from pathlib import Path
 from typing import Dict, List, Optional, Tuple
 
-from sked_ns.batch.plan import (EDIT_FIELDS, PLAN_FIELDS, PRESETS, REQUIRED, SAFE_NAME, SET_BY_PLAN, SLURM_FIELDS,
-                                SLURM_MEMORY, SLURM_TIME, Edit, Job, Jobs, Plan, merged_flags)
+from sked_ns.batch.plan import (
+    EDIT_FIELDS,
+    PLAN_FIELDS,
+    PRESETS,
+    REQUIRED,
+    SAFE_NAME,
+    SET_BY_PLAN,
+    SLURM_FIELDS,
+    SLURM_MEMORY,
+    SLURM_TIME,
+    Edit,
+    Job,
+    Jobs,
+    Plan,
+    merged_flags,
+)
 from sked_ns.errors import SkedFileNotFoundError, SkedUserError
+
 
 def read_plan_file(path: Path) -> dict:
     if path.is_dir():

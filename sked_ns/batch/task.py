@@ -18,8 +18,19 @@ from pathlib import Path
 from typing import Dict, List, Optional
 
 from sked_ns.batch.plan import Job
-from sked_ns.batch.state import (finished, job_record, marker, owner_alive, progress, read_marker, remove_marker,
-                                 slurm_states, this_owner, write_marker, writer)
+from sked_ns.batch.state import (
+    finished,
+    job_record,
+    marker,
+    owner_alive,
+    progress,
+    read_marker,
+    remove_marker,
+    slurm_states,
+    this_owner,
+    write_marker,
+    writer,
+)
 from sked_ns.run_lock import WriterBusy, describe, is_this_process, process_start, writing
 
 

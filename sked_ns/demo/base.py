@@ -17,10 +17,10 @@ from typing import Optional
 import numpy as np
 import torch
 from nerfstudio.cameras.camera_optimizers import CameraOptimizerConfig
+from nerfstudio.cameras.rays import Frustums, RaySamples
 from nerfstudio.configs.method_configs import method_configs
 from nerfstudio.data.datamanagers.base_datamanager import VanillaDataManagerConfig
 from nerfstudio.field_components.field_heads import FieldHeadNames
-from nerfstudio.cameras.rays import Frustums, RaySamples
 
 from sked_ns.demo.scenes import sphere as demo_scene
 from sked_ns.models.nerf.nerfacto import _without_lpips

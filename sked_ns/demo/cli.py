@@ -10,7 +10,6 @@ from sked_ns.demo import BASES
 from sked_ns.errors import ArgumentParser
 
 
-
 def demo_parser() -> argparse.ArgumentParser:
     parser = ArgumentParser(prog="sked-demo", formatter_class=argparse.ArgumentDefaultsHelpFormatter,
                             description="A real SKED edit of the embedded demo scene (a sphere gets a hat from two "

@@ -20,13 +20,13 @@ import cv2
 import numpy as np
 import torch
 
-from sked_ns.demo.scenes import sphere as demo_scene
-from sked_ns.demo.base import build_demo_base
 from sked_ns.demo import BASES
-from sked_ns.method.edit_box import compute_edit_box
+from sked_ns.demo.base import build_demo_base
+from sked_ns.demo.scenes import sphere as demo_scene
+from sked_ns.errors import SkedFileExistsError, SkedUserError, check_writable_folder
 from sked_ns.evaluation.metrics import intersection_over_sketch, psnr_outside
 from sked_ns.evaluation.novel_views import eval_split_views, evaluate_novel_views
-from sked_ns.errors import SkedFileExistsError, SkedUserError, check_writable_folder
+from sked_ns.method.edit_box import compute_edit_box
 from sked_ns.method.preservation import SketchDistanceField
 from sked_ns.run_lock import hold
 from sked_ns.sketches.sketch_set import DataparserTransform, SketchSet, load_sketch_set, save_sketch_set

@@ -24,9 +24,9 @@ import cv2
 import numpy as np
 import torch
 
-from sked_ns.sketches.cameras import check_camera_to_world
-from sked_ns.method.edit_box import check_sketches_meet
 from sked_ns.errors import ArgumentParser, SkedFileNotFoundError, SkedUserError, check_writable_folder
+from sked_ns.method.edit_box import check_sketches_meet
+from sked_ns.sketches.cameras import check_camera_to_world
 from sked_ns.sketches.sketch_set import SKETCHES_JSON, SketchSet, SketchView, fill_scribbles, save_sketch_set
 
 # y-up world (theirs) -> z-up world (nerfstudio's): (x, y, z) -> (x, -z, y).

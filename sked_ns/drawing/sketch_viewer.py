@@ -25,10 +25,16 @@ from typing import Callable, List, Optional
 import numpy as np
 import torch
 
-from sked_ns.errors import ArgumentParser, SkedFileExistsError, SkedUserError, reading
+from sked_ns.drawing.sketching import (
+    PinholeCamera,
+    SketchSession,
+    check_new_canvas_folder,
+    import_canvases,
+    sketch_set_coverage,
+    write_canvases,
+)
 from sked_ns.engine.viewer import add_frustum, show_sketch_views
-from sked_ns.drawing.sketching import (PinholeCamera, SketchSession, check_new_canvas_folder, import_canvases,
-                                       sketch_set_coverage, write_canvases)
+from sked_ns.errors import ArgumentParser, SkedFileExistsError, SkedUserError, reading
 from sked_ns.sketches.sketch_set import SKETCHES_JSON, DataparserTransform
 
 VIEW_WIDTH = 512

@@ -22,11 +22,11 @@ from typing import Callable, List, Optional, Sequence, Tuple
 import cv2
 import numpy as np
 
-from sked_ns.sketches.cameras import PinholeCamera, check_camera_to_world
-from sked_ns.method.edit_box import EditBox, check_sketches_meet, compute_edit_box
-from sked_ns.errors import SkedFileExistsError, SkedFileNotFoundError, SkedUserError, reading
 from sked_ns.drawing.hull_check import HullCheck, check_hull
+from sked_ns.errors import SkedFileExistsError, SkedFileNotFoundError, SkedUserError, reading
+from sked_ns.method.edit_box import EditBox, check_sketches_meet, compute_edit_box
 from sked_ns.run_lock import writing
+from sked_ns.sketches.cameras import PinholeCamera, check_camera_to_world
 from sked_ns.sketches.sketch_set import (
     SKETCHES_JSON,
     DataparserTransform,

@@ -22,6 +22,7 @@ from sked_ns.errors import SkedFileNotFoundError, SkedUserError
 from sked_ns.models.registry import family
 from sked_ns.sketches.sketch_set import DataparserTransform
 
+
 @dataclass(frozen=True)
 class BaseScene:
     """A trained nerfstudio run to edit (or an edit to resume)."""

@@ -19,8 +19,8 @@ from nerfstudio.cameras.rays import RayBundle
 from nerfstudio.data.datamanagers.base_datamanager import VanillaDataManager, VanillaDataManagerConfig
 from nerfstudio.utils.rich_utils import CONSOLE
 
-from sked_ns.sketches.cameras import cameras_of, pinhole_rays
 from sked_ns.method.edit_box import EditBox
+from sked_ns.sketches.cameras import cameras_of, pinhole_rays
 from sked_ns.sketches.data_frame import SKETCH_FRAME, TRAINING_CAMERAS
 from sked_ns.sketches.random_views import ELEVATION_RANGE_DEG, FOV_RANGE_DEG, RandomViewSampler, focal_from_fov
 from sked_ns.sketches.sketch_set import DataparserTransform, SketchSet, sketch_view_at

@@ -16,14 +16,14 @@ from pathlib import Path
 
 import torch
 
-from sked_ns.engine.memory_plan import check_memory
 from sked_ns.engine.drawn_sketches import sketches_pending
+from sked_ns.engine.memory_plan import check_memory
+from sked_ns.engine.pipeline import refuse_multi_device
 from sked_ns.errors import SkedFileNotFoundError, SkedUserError, reading, warn
 from sked_ns.guidance import check_guidance
 from sked_ns.method.options import is_carving
-from sked_ns.engine.pipeline import refuse_multi_device
-from sked_ns.sketches.sketch_set import load_sketch_set
 from sked_ns.method.validation import check_sketch_pixels
+from sked_ns.sketches.sketch_set import load_sketch_set
 
 MISSING_IMAGES_SHOWN = 3
 """Missing photos named in the message; the count says how many more."""
@@ -113,8 +113,8 @@ def check_sketches_in_data(config, with_sketches: bool = True) -> None:
     (model_frame_sketches) and boxed inside its scene box (compute_edit_box), and the base trained in that frame."""
     from sked_ns.engine.base_scene import check_same_frame, dataparser_name, resolve_base
     from sked_ns.engine.datamanager import outputs_transform, sketch_frame_metadata
-    from sked_ns.sketches.data_frame import model_frame_sketches
     from sked_ns.method.edit_box import compute_edit_box
+    from sked_ns.sketches.data_frame import model_frame_sketches
 
     datamanager, model = config.pipeline.datamanager, config.pipeline.model
     dataparser = copy.deepcopy(datamanager.dataparser)

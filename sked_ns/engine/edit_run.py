@@ -7,9 +7,9 @@ from pathlib import Path
 from typing import Optional
 
 from sked_ns.engine.presets import sked_method
+from sked_ns.engine.trainer import SkedTrainerConfig
 from sked_ns.guidance import guidance_config
 from sked_ns.run_lock import release
-from sked_ns.engine.trainer import SkedTrainerConfig
 
 
 def edit_config(

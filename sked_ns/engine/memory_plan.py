@@ -230,8 +230,8 @@ def resident_bytes(representation: str, base_bytes: float, options) -> float:
 
 def plan_edit(config) -> MemoryPlan:
     """The plan of an edit's config, after resolve_edit filled it in from the base."""
-    from sked_ns.models.registry import representation_of
     from sked_ns.method.options import is_carving
+    from sked_ns.models.registry import representation_of
 
     options, machine = config.pipeline.model, config.machine
     representation = representation_of(options).name  # resolve_edit refused any other kind of base

@@ -19,8 +19,8 @@ from sked_ns.engine.base_scene import check_same_frame, resolve_base
 from sked_ns.engine.datamanager import SkedDataManagerConfig
 from sked_ns.errors import SkedUserError
 from sked_ns.guidance import check_guidance
-from sked_ns.models.nerf.nerfacto import SkedNerfactoModelConfig
 from sked_ns.method.options import is_carving
+from sked_ns.models.nerf.nerfacto import SkedNerfactoModelConfig
 from sked_ns.models.registry import renders_cameras
 
 

@@ -19,11 +19,11 @@ from nerfstudio.engine.optimizers import AdamOptimizerConfig
 from nerfstudio.engine.schedulers import ExponentialDecaySchedulerConfig
 from nerfstudio.plugins.types import MethodSpecification
 
-from sked_ns.models.nerf.field_edit import SkedOptions
 from sked_ns.engine.datamanager import SkedDataManagerConfig
-from sked_ns.models.nerf.nerfacto import SkedNerfactoModelConfig
 from sked_ns.engine.pipeline import SkedPipelineConfig
 from sked_ns.engine.trainer import SkedTrainerConfig
+from sked_ns.models.nerf.field_edit import SkedOptions
+from sked_ns.models.nerf.nerfacto import SkedNerfactoModelConfig
 
 LEARNING_RATE = 5e-3  # docs/method.md, Optimisation: Adam 5e-3, hash grids 10x
 PRESETS = ("sked", "sked-fast", "sked-quality")

@@ -28,16 +28,16 @@ from nerfstudio.utils.rich_utils import CONSOLE
 
 from sked_ns.atomic import publish_atomically, write_text_atomically
 from sked_ns.engine.base_scene import BaseScene, checkpoint_step, dataparser_command, resolve_base, restart_command
-from sked_ns.errors import SkedFileNotFoundError, SkedUserError, check_writable_folder
+from sked_ns.engine.drawn_sketches import draw_sketches_in_viewer, sketches_pending
+from sked_ns.engine.edit_inputs import check_edit_inputs
 from sked_ns.engine.resume import preset_config, resumed_config, typed_settings
-from sked_ns.run_lock import hold, write_failure
 from sked_ns.engine.safe_step import GuardedGradScaler, GuardedOptimizers, StepGuard
+from sked_ns.errors import SkedFileNotFoundError, SkedUserError, check_writable_folder
 from sked_ns.method.frozen_base import base_implementation
 from sked_ns.method.options import SkedOptions, copy_base_architecture
-from sked_ns.models.registry import representation_of
-from sked_ns.engine.edit_inputs import check_edit_inputs
-from sked_ns.engine.drawn_sketches import draw_sketches_in_viewer, sketches_pending
 from sked_ns.method.validation import check_options
+from sked_ns.models.registry import representation_of
+from sked_ns.run_lock import hold, write_failure
 
 
 @dataclass

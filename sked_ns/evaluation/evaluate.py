@@ -21,21 +21,30 @@ from typing import Dict, Optional
 import numpy as np
 import torch
 
+from sked_ns.atomic import publish_atomically, write_text_atomically
 from sked_ns.engine.base_scene import checkpoint_step
 from sked_ns.errors import SkedUserError, warn
-from sked_ns.atomic import publish_atomically, write_text_atomically
 from sked_ns.evaluation import novel_views
-from sked_ns.evaluation.eval_inputs import (check_base, check_device, check_flags, check_sketch_masks, checked_sketches,
-                                            edit_run_folder, edit_scene, is_orbit, novel_view_cameras,
-                                            orbit_count, output_paths)
-from sked_ns.evaluation.metrics import intersection_over_sketch, psnr_outside, ssim_outside
 from sked_ns.evaluation.clip_score import DEFAULT_CLIP, ClipScorer, orbit_cameras
-from sked_ns.sketches.random_views import focal_from_fov
+from sked_ns.evaluation.eval_inputs import (
+    check_base,
+    check_device,
+    check_flags,
+    check_sketch_masks,
+    checked_sketches,
+    edit_run_folder,
+    edit_scene,
+    is_orbit,
+    novel_view_cameras,
+    orbit_count,
+    output_paths,
+)
+from sked_ns.evaluation.metrics import intersection_over_sketch, psnr_outside, ssim_outside
 from sked_ns.evaluation.render import load_pipeline, render_at, render_base_at, render_camera, resized_mask
 from sked_ns.progress import Progress
 from sked_ns.run_lock import describe, holder, writing
 from sked_ns.sketches.cameras import cameras_of
-
+from sked_ns.sketches.random_views import focal_from_fov
 
 ALEXNET_WEIGHTS = "alexnet-owt-7be5be79.pth"  # what torchvision fetches for torchmetrics' LPIPS
 REGION_IOS_OF_OTHER_BASE = ("n/a: --base's renders carry no preservation weight (only the edit's frozen copy of its "

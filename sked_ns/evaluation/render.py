@@ -43,8 +43,8 @@ def render_splatfacto(model, camera) -> Dict[str, torch.Tensor]:
     """A plain splatfacto model's eval render off CUDA, with SKED's torch rasterizer: nerfstudio 1.1.5's
     get_outputs moves the intrinsics to CUDA and calls gsplat's CUDA-only kernels. Same Gaussians, SH degree
     (splatfacto's schedule at the model's step), background and clamping."""
-    from sked_ns.sketches.cameras import viewmat
     from sked_ns.models.splat.rasterize import rasterize
+    from sked_ns.sketches.cameras import viewmat
 
     camera_to_world = camera.camera_to_worlds.reshape(-1, 3, 4)[:1].to(model.device, torch.float32)
     intrinsics = camera.get_intrinsics_matrices().reshape(-1, 3, 3)[:1].to(model.device, torch.float32)

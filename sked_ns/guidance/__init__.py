@@ -18,9 +18,9 @@ from typing import Dict, Optional, Type, Union
 import tyro
 from typing_extensions import Annotated
 
+from sked_ns.errors import refuse, warn_option
 from sked_ns.guidance.base import Guidance, GuidanceConfig, RenderedView
 from sked_ns.guidance.stable_diffusion import StableDiffusionGuidance, StableDiffusionGuidanceConfig
-from sked_ns.errors import refuse, warn_option
 
 ENTRY_POINT_GROUP = "sked_ns.guidance"
 BUILT_IN: Dict[str, Type[GuidanceConfig]] = {"stable-diffusion": StableDiffusionGuidanceConfig}

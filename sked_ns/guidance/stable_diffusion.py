@@ -22,11 +22,9 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from sked_ns.errors import SkedFileNotFoundError, SkedUserError
+from sked_ns.errors import SkedFileNotFoundError, SkedUserError, is_number, refuse, warn_option
 from sked_ns.guidance.base import Guidance, GuidanceConfig, RenderedView
 from sked_ns.sketches.random_views import DIRECTIONS
-from sked_ns.errors import is_number, refuse, warn_option
-
 
 SdsWeighting = Literal["authors", "dreamfusion"]
 SDS_WEIGHTINGS = get_args(SdsWeighting)

@@ -36,16 +36,16 @@ import torch
 from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackLocation
 from torch import Tensor
 
-from sked_ns.method.edit_box import EditBox, compute_edit_box, in_box
-from sked_ns.sketches.data_frame import model_frame_sketches
-from sked_ns.method.frozen_base import FrozenBase
+from sked_ns.errors import warn
 from sked_ns.guidance import Guidance, RenderedView
+from sked_ns.method.edit_box import EditBox, compute_edit_box, in_box
+from sked_ns.method.frozen_base import FrozenBase
 from sked_ns.method.losses import silhouette_loss, sparsity_loss
 from sked_ns.method.options import SkedOptions, warn_degenerate_settings
 from sked_ns.method.photo_anchor import check_base_explains_photos, editable_box
 from sked_ns.method.preservation import SketchDistanceField, check_beta
 from sked_ns.method.validation import check_sketch_pixels
-from sked_ns.errors import warn
+from sked_ns.sketches.data_frame import model_frame_sketches
 
 TINT = (1.0, 0.2, 0.2)
 SKETCH_REACH = 0.5

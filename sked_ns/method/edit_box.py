@@ -18,8 +18,8 @@ import torch
 from scipy.optimize import linprog
 from torch import Tensor
 
-from sked_ns.sketches.cameras import pixel_directions
 from sked_ns.errors import SkedUserError
+from sked_ns.sketches.cameras import pixel_directions
 from sked_ns.sketches.sketch_set import SketchView
 
 # Frusta start this far in front of each camera (scene units).

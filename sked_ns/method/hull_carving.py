@@ -20,7 +20,6 @@ from torch import Tensor, nn
 from sked_ns.sketches.cameras import pixel_lookup, projection_rows
 from sked_ns.sketches.sketch_set import SketchView
 
-
 OPAQUE = 0.9
 """A sketch ray counts as filled from this new opacity on; the gate rises from 0 there to 1 at full opacity. A gate
 linear in the opacity settles the edit at partial opacity (L_sil and L_new in balance: region IoS 0.69 instead of

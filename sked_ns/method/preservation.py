@@ -123,12 +123,12 @@ class SketchDistanceField(nn.Module):
             )
 
     @torch.no_grad()
-    def hull_distance(self, points: Float[Tensor, "num_points 3"]) -> Float[Tensor, "num_points"]:
+    def hull_distance(self, points: Float[Tensor, "num_points 3"]) -> Float[Tensor, " num_points"]:
         """max_j d_j(p): 0 exactly inside the sketches' visual hull (every view's mask agrees), in image widths."""
         return self.per_view_distance(points).amax(dim=0)
 
     @torch.no_grad()
-    def distance(self, points: Float[Tensor, "num_points 3"]) -> Float[Tensor, "num_points"]:
+    def distance(self, points: Float[Tensor, "num_points 3"]) -> Float[Tensor, " num_points"]:
         """D(p): the mean of the per-view distances (paper, after Eq. 1), in image widths."""
         mean_scale = 1.0 / (self.num_views * self.sizes[0])
         points = points.to(self.projection_rows)

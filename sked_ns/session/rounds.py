@@ -33,7 +33,6 @@ from sked_ns.errors import SkedUserError
 from sked_ns.run_lock import LOCK_NAME, hold, release
 from sked_ns.session.panel import SessionPanel, StartRequest
 
-
 ROUND_HOLD_HINT = "Wait for it to end, or give this edit another --timestamp or --output-dir."
 PROGRESS_SECONDS = 1.0
 """The panel's step count is refreshed at most this often (each refresh is a message to every browser)."""

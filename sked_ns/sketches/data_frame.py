@@ -15,7 +15,13 @@ from typing import Dict, Optional
 import numpy as np
 
 from sked_ns.errors import SkedUserError
-from sked_ns.sketches.sketch_set import SKETCHES_JSON, DataparserTransform, SketchSet, check_declared_frame, load_sketch_set
+from sked_ns.sketches.sketch_set import (
+    SKETCHES_JSON,
+    DataparserTransform,
+    SketchSet,
+    check_declared_frame,
+    load_sketch_set,
+)
 
 IMPLIED_COLMAP_TRANSFORM = [[0, 1, 0, 0], [1, 0, 0, 0], [0, 0, -1, 0]]
 """What nerfstudio-data assumes as `applied_transform` for a COLMAP folder whose transforms.json has none."""

@@ -35,9 +35,9 @@ import cv2
 import numpy as np
 import torch
 
-from sked_ns.sketches.cameras import cameras_of, check_camera_to_world, distort
 from sked_ns.errors import SkedFileExistsError, SkedFileNotFoundError, SkedUserError
 from sked_ns.run_lock import writing
+from sked_ns.sketches.cameras import cameras_of, check_camera_to_world, distort
 
 if TYPE_CHECKING:
     from nerfstudio.cameras.cameras import Cameras

@@ -22,19 +22,18 @@ from pathlib import Path
 
 import pytest
 import yaml
+from lock_helpers import WRITE, holding, killed
 from PIL import Image
+from slurm_cluster import SlurmCluster, why_not
 
+from sked_ns import run_lock
 from sked_ns.batch import state
 from sked_ns.batch.cli import to_run
 from sked_ns.batch.plan_file import load_plan
 from sked_ns.batch.report import ROW_HEIGHT, write_report
 from sked_ns.batch.runners import run_local, sbatch_script, slurm_options
 from sked_ns.batch.task import run_job
-from sked_ns import run_lock
 from sked_ns.errors import SkedUserError
-
-from slurm_cluster import SlurmCluster, why_not
-from lock_helpers import WRITE, holding, killed
 
 TINY_FLAGS = ("--machine.device-type cpu --mixed-precision False --pipeline.model.guidance-resolution 16 "
               "--pipeline.model.silhouette-resolution 16 --steps-per-eval-image 1000000 pipeline.model.guidance:reference")

@@ -142,9 +142,8 @@ def test_bare_sd_step_runs_under_the_edits_autocast(tmp_path):
     import torch
 
     sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "engine"))  # importable when tests/engine is not run
-    from test_nerfstudio_glue import toy_trainer
-
     import sds_iteration
+    from test_nerfstudio_glue import toy_trainer
 
     def state():
         return torch.is_autocast_enabled("cpu"), torch.get_autocast_dtype("cpu")
@@ -180,10 +179,9 @@ def test_a_base_on_a_white_backdrop_trains_with_a_white_background(tmp_path, mon
     """The demo sphere's photos show nothing but the object on white: its base is told so (nerfacto's default
     last_sample fills the empty space with white mass); the other scenes keep the default. A base trained with the
     other background is never reused."""
+    import edit_quality
     import tyro
     from nerfstudio.configs.method_configs import AnnotatedBaseConfigUnion
-
-    import edit_quality
 
     def base_config(scene):
         return tyro.cli(AnnotatedBaseConfigUnion, args=edit_quality.base_arguments(
@@ -207,11 +205,10 @@ def test_a_base_on_a_white_backdrop_trains_with_a_white_background(tmp_path, mon
 
 def test_benchmark_command_lines_parse_as_ns_train_parses_them(tmp_path):
     """The benchmarks type `ns-train sked` as a user does: nerfstudio's own CLI must read what they mean."""
-    import tyro
-    from nerfstudio.configs.method_configs import AnnotatedBaseConfigUnion
-
     import edit_quality
     import gpu_check
+    import tyro
+    from nerfstudio.configs.method_configs import AnnotatedBaseConfigUnion
 
     paths = {"sketches": tmp_path / "sketches", "data": tmp_path / "data"}
     protocol = {**edit_quality.PROTOCOLS["cpu-100"]}
@@ -262,12 +259,12 @@ def test_benchmark_command_lines_parse_as_ns_train_parses_them(tmp_path):
 def test_sketch_view_fill_credits_a_correct_edit_that_kept_content_hides():
     """A sketch holds the added part's hidden pixels too (the crate's wall in front of half the handle): the exact
     target fills only some of it by region IoS, all of it where the target shows the part, and nothing fills 0."""
+    import edit_quality
     import torch
 
-    import edit_quality
     from sked_ns.demo.scenes.objects import SCENES, visible_added_part
-    from sked_ns.sketches.sketch_set import sketch_view_at
     from sked_ns.method.preservation import SketchDistanceField
+    from sked_ns.sketches.sketch_set import sketch_view_at
 
     views = SCENES["crate"].sketch_set().views
     beta, resolution = 0.025, 64

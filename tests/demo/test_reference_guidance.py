@@ -4,9 +4,9 @@ import numpy as np
 import pytest
 import torch
 
-from sked_ns.demo.scenes.objects import CAMERA_RADIUS
-from sked_ns.demo.scenes.catalogue import scene_named
 from sked_ns.demo.reference_guidance import ReferenceGuidanceConfig
+from sked_ns.demo.scenes.catalogue import scene_named
+from sked_ns.demo.scenes.objects import CAMERA_RADIUS
 from sked_ns.demo.scenes.sphere import orbit_pose
 from sked_ns.guidance import RenderedView
 

@@ -7,10 +7,10 @@ import pytest
 import torch
 
 from sked_ns.demo.scenes import sphere as demo_scene
-from sked_ns.method.edit_box import compute_edit_box
 from sked_ns.engine.edit_run import edit_config, run_edit
 from sked_ns.evaluation.metrics import psnr_outside
 from sked_ns.evaluation.render import load_pipeline, render_at, resized_mask
+from sked_ns.method.edit_box import compute_edit_box
 from sked_ns.sketches.sketch_set import load_sketch_set, save_sketch_set
 
 
@@ -66,9 +66,10 @@ def test_reference_edit_reaches_each_target(scene, tmp_path, name):
 
 @pytest.mark.parametrize("name", ["vase", "crate"])
 def test_held_out_scenes_write_base_target_and_sketches(name, tmp_path):
+    import json
+
     from sked_ns.demo.scenes import catalogue
     from sked_ns.demo.scenes import objects as benchmark_scenes
-    import json
 
     scene = benchmark_scenes.SCENES[name]
     paths = catalogue.write_benchmark(name, tmp_path, count=12, size=32)

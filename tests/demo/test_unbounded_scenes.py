@@ -7,8 +7,8 @@ import pytest
 import torch
 
 from sked_ns.demo.scenes import unbounded as unbounded_scenes
-from sked_ns.demo.scenes.objects import eval_indices, visible_added_part
 from sked_ns.demo.scenes.catalogue import scene_named, write_benchmark
+from sked_ns.demo.scenes.objects import eval_indices, visible_added_part
 from sked_ns.demo.scenes.unbounded import FOCAL, SCENES, capture_pose, capture_poses, sky, trace_unbounded
 from sked_ns.sketches.random_views import look_at
 

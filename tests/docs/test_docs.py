@@ -10,7 +10,6 @@ import sys
 from pathlib import Path
 
 import pytest
-
 from doc_commands import PAGES, ROOT, commands, flags, parser_key
 
 LINK = re.compile(r"\[[^\]]*\]\(([^)\s]+)\)")

@@ -9,8 +9,8 @@ import pytest
 import torch
 
 from sked_ns.drawing.authors_import import Y_UP_TO_Z_UP, import_authors_sketches, read_authors_meta
-from sked_ns.sketches.cameras import project
 from sked_ns.method.edit_box import compute_edit_box
+from sked_ns.sketches.cameras import project
 from sked_ns.sketches.sketch_set import load_sketch_set, save_sketch_set
 
 CAT = Path(__file__).resolve().parents[1] / "data" / "sked-authors-cat"

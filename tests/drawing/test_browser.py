@@ -7,9 +7,9 @@ back, and keeps a screenshot in test-artifacts/ (or $SKED_TEST_ARTIFACTS).
 
 from __future__ import annotations
 
+import contextlib
 import os
 import re
-import contextlib
 import shutil
 import threading
 import time
@@ -18,8 +18,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
-
 from session_helpers import free_port, wait_for
+
 from sked_ns.sketches.sketch_set import load_sketch_set
 
 ROOT = Path(__file__).resolve().parents[2]

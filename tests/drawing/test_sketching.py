@@ -7,7 +7,6 @@ import numpy as np
 import pytest
 
 from sked_ns.demo.scenes import sphere as demo_scene
-from sked_ns.sketches.sketch_set import DataparserTransform, load_sketch_set
 from sked_ns.drawing.sketching import (
     CANVASES_JSON,
     PinholeCamera,
@@ -15,6 +14,7 @@ from sked_ns.drawing.sketching import (
     import_canvases,
     write_canvases,
 )
+from sked_ns.sketches.sketch_set import DataparserTransform, load_sketch_set
 
 # A dataparser-like transform: a rotation about z, a shift and a scale (data -> model frame).
 ANGLE = 0.3

@@ -125,8 +125,8 @@ def test_sked_sketch_takes_the_base_once_as_a_folder_or_as_load_config(tmp_path)
 
 def test_steering_controls_change_what_the_viewer_shows(scene, tmp_path):
     from sked_ns.engine.edit_run import edit_config
-    from sked_ns.evaluation.render import render_at, render_base_at
     from sked_ns.engine.trainer import resolve_edit
+    from sked_ns.evaluation.render import render_at, render_base_at
 
     config = edit_config(scene["base"], scene["data"], scene["sketches"], tmp_path, iterations=2)
     resolve_edit(config)

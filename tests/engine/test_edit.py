@@ -13,18 +13,18 @@ from pathlib import Path
 
 import pytest
 import torch
-from reference import file_digests
 import yaml
 from nerfstudio.configs.method_configs import method_configs
+from reference import file_digests
 
 from sked_ns.demo.scenes import sphere as demo_scene
 from sked_ns.engine.base_scene import resolve_base
-from sked_ns.method.frozen_base import read_model_state
 from sked_ns.engine.edit_run import edit_config, resume_config, run_edit
+from sked_ns.engine.trainer import resolve_edit
 from sked_ns.errors import SkedUserError
 from sked_ns.evaluation.metrics import intersection_over_sketch, psnr_outside
 from sked_ns.evaluation.render import load_pipeline, render_at, resized_mask
-from sked_ns.engine.trainer import resolve_edit
+from sked_ns.method.frozen_base import read_model_state
 from sked_ns.sketches.sketch_set import SketchSet, SketchView, load_sketch_set, save_sketch_set
 
 ITERATIONS = 60

@@ -8,13 +8,13 @@ from pathlib import Path
 
 import pytest
 import torch
+from tiny_sd import build_tiny_stable_diffusion
 
 from sked_ns.engine import memory_plan
 from sked_ns.engine.memory_plan import GB, StepWork, nerf_side, sd_bytes
 from sked_ns.errors import SkedUserError
 from sked_ns.guidance.stable_diffusion import StableDiffusionGuidanceConfig
 from sked_ns.method.options import SkedOptions
-from tiny_sd import build_tiny_stable_diffusion
 
 RESULTS = Path(__file__).resolve().parents[2] / "benchmarks" / "results" / "memory.json"
 WITHIN = 0.25

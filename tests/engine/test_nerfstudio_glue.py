@@ -15,15 +15,14 @@ from nerfstudio.engine.schedulers import ExponentialDecaySchedulerConfig
 from nerfstudio.engine.trainer import Trainer
 from nerfstudio.models.nerfacto import NerfactoModelConfig
 
-from sked_ns import compat
+from sked_ns import compat  # noqa: F401  (the version layer applies on import)
 from sked_ns.engine.base_scene import resolve_base
-from sked_ns.method.options import copy_base_architecture
-from sked_ns.models.registry import family as base_family
-from sked_ns.engine.datamanager import SkedDataManager
-from sked_ns.models.nerf.nerfacto import SkedNerfactoModelConfig
-from sked_ns.models.nerf.ngp import SkedNGPModelConfig
 from sked_ns.engine.pipeline import SkedPipeline, SkedPipelineConfig
 from sked_ns.engine.trainer import SkedTrainer, SkedTrainerConfig
+from sked_ns.method.options import copy_base_architecture
+from sked_ns.models.nerf.nerfacto import SkedNerfactoModelConfig
+from sked_ns.models.nerf.ngp import SkedNGPModelConfig
+from sked_ns.models.registry import family as base_family
 
 
 class ToyPipeline(torch.nn.Module):

@@ -14,13 +14,12 @@ import pytest
 import torch
 import yaml
 
-from sked_ns.engine.base_scene import resolve_base
-from sked_ns.engine.resume import preset_config
 from sked_ns.demo.reference_guidance import ReferenceGuidanceConfig
+from sked_ns.engine.base_scene import resolve_base
 from sked_ns.engine.edit_run import resume_config
-from sked_ns.errors import SkedUserError, check_writable_folder
-from sked_ns.engine.resume import resumed_config
+from sked_ns.engine.resume import preset_config, resumed_config
 from sked_ns.engine.trainer import SkedTrainer, check_run_settings
+from sked_ns.errors import SkedUserError, check_writable_folder
 
 
 def saved_edit() -> object:
@@ -317,8 +316,8 @@ def saved_splat_edit() -> object:
     """saved_edit() of a splatfacto base: the model and optimisers start_edit gives a splat edit."""
     from nerfstudio.models.splatfacto import SplatfactoModelConfig
 
-    from sked_ns.models.splat.rates import splat_optimizers
     from sked_ns.engine.trainer import edit_model_config
+    from sked_ns.models.splat.rates import splat_optimizers
 
     config = saved_edit()
     config.pipeline.model = edit_model_config(config.pipeline.model, SplatfactoModelConfig())

@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 import torch
 
-from sked_ns.evaluation import novel_views
 from sked_ns.demo.scenes import sphere as demo_scene
 from sked_ns.engine.edit_run import edit_config, run_edit
+from sked_ns.evaluation import novel_views
 from sked_ns.evaluation.render import load_pipeline
 from sked_ns.sketches.sketch_set import DataparserTransform
 

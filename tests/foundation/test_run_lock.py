@@ -13,19 +13,18 @@ import signal
 import socket
 import subprocess
 import sys
-import types
 import threading
+import types
 from pathlib import Path
 
 import pytest
 import torch
+from lock_helpers import HOLD, WRITE, holding, killed  # noqa: E402,F401  (tests/, shared with sked-batch's tests)
 
 from sked_ns import run_lock
 from sked_ns.engine.base_scene import dataparser_name, resolve_base
 from sked_ns.engine.edit_run import edit_config
 from sked_ns.errors import SkedUserError
-
-from lock_helpers import HOLD, WRITE, holding, killed  # noqa: E402,F401  (tests/, shared with sked-batch's tests)
 
 
 def tiny_edit(scene, output: Path, prompt: str):
@@ -217,6 +216,7 @@ def test_sked_eval_leaves_outputs_another_sked_eval_writes(tmp_path, monkeypatch
 
 def test_a_sketch_set_has_one_writer(tmp_path, rng):
     from conftest import random_view
+
     from sked_ns.sketches.sketch_set import SketchSet, load_sketch_set, save_sketch_set
 
     sketches = SketchSet(views=[random_view(rng, 32, 24), random_view(rng, 32, 24)])

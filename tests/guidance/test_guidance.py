@@ -10,11 +10,11 @@ import weakref
 import numpy as np
 import pytest
 import torch
+from tiny_sd import build_tiny_stable_diffusion
 
+from sked_ns.errors import SkedOptionError, SkedOptionWarning
 from sked_ns.guidance import RenderedView, StableDiffusionGuidanceConfig, check_guidance, guidance_config
 from sked_ns.guidance.stable_diffusion import DiffusionWeightsMissing
-from sked_ns.errors import SkedOptionError, SkedOptionWarning
-from tiny_sd import build_tiny_stable_diffusion
 
 
 @pytest.fixture(scope="module")
@@ -346,8 +346,8 @@ def test_an_empty_prompt_is_refused_and_says_how_to_carve(prompt):
 
 
 def test_the_pipeline_refuses_an_empty_prompt_before_reading_any_data(tmp_path):
-    from sked_ns.models.nerf.nerfacto import SkedNerfactoModelConfig
     from sked_ns.engine.pipeline import SkedPipelineConfig
+    from sked_ns.models.nerf.nerfacto import SkedNerfactoModelConfig
 
     # An unset shell variable ($PROMPT) must not carve the sketched region away; nothing here exists to be read.
     model = SkedNerfactoModelConfig(sketches=tmp_path / "no-sketches", prompt="")

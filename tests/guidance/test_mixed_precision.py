@@ -14,12 +14,12 @@ import pytest
 import torch
 from nerfstudio.engine.optimizers import AdamOptimizerConfig, Optimizers
 from nerfstudio.engine.schedulers import ExponentialDecaySchedulerConfig
+from tiny_sd import build_tiny_stable_diffusion
 from torch.nn import Parameter
 
-from sked_ns.guidance import RenderedView, StableDiffusionGuidanceConfig
 from sked_ns.engine.safe_step import INITIAL_LOSS_SCALE, GuardedGradScaler, GuardedOptimizers, StepGuard
 from sked_ns.engine.trainer import SkedTrainer
-from tiny_sd import build_tiny_stable_diffusion
+from sked_ns.guidance import RenderedView, StableDiffusionGuidanceConfig
 
 GUIDANCE_SCALE = 100.0
 

@@ -7,9 +7,9 @@ import pytest
 import torch
 from nerfacc import OccGridEstimator
 
-from sked_ns.sketches.cameras import project
 from sked_ns.demo.scenes.sphere import orbit_pose
 from sked_ns.method.edit_box import EditBox, check_view_baselines, compute_edit_box, occupancy_grid_mask
+from sked_ns.sketches.cameras import project
 from sked_ns.sketches.sketch_set import SketchView
 
 

@@ -7,8 +7,15 @@ import math
 import pytest
 import torch
 
-from sked_ns.method.losses import (ALPHA_EPS, PROBABILITY_EPS, REFERENCE_SKETCH_COVERAGE, new_mass_loss, preservation_loss,
-                            silhouette_loss, sparsity_loss)
+from sked_ns.method.losses import (
+    ALPHA_EPS,
+    PROBABILITY_EPS,
+    REFERENCE_SKETCH_COVERAGE,
+    new_mass_loss,
+    preservation_loss,
+    silhouette_loss,
+    sparsity_loss,
+)
 
 DELTA = 0.07
 

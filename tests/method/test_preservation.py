@@ -8,8 +8,10 @@ import warnings
 import numpy as np
 import pytest
 import torch
+from conftest import random_blob_mask, random_view
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from reference import exact_distance_one, near_pixel_edge, sketch_distance_one
 
 from sked_ns.method.preservation import (
     SketchDistanceField,
@@ -19,8 +21,6 @@ from sked_ns.method.preservation import (
     sketch_distance_transform,
 )
 from sked_ns.sketches.sketch_set import SketchView
-from conftest import random_blob_mask, random_view
-from reference import exact_distance_one, near_pixel_edge, sketch_distance_one
 
 DEVICES = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
 

@@ -21,8 +21,8 @@ DELTA = 0.07
 
 def test_the_marker_scenes_hull_is_much_larger_than_the_marker():
     from sked_ns.demo.scenes.objects import SCENES
-    from sked_ns.method.edit_box import compute_edit_box
     from sked_ns.drawing.hull_check import check_hull
+    from sked_ns.method.edit_box import compute_edit_box
     from sked_ns.method.preservation import SketchDistanceField
 
     scene = SCENES["marker"]
@@ -93,9 +93,9 @@ def test_l_new_alone_cannot_empty_the_sketch_rays():
 
 
 def test_sketch_ray_opacity_reads_the_pixel_each_point_projects_to():
-    from sked_ns.sketches.cameras import pixel_directions
     from sked_ns.demo.scenes.objects import SCENES
     from sked_ns.method.hull_carving import SketchRayOpacity
+    from sked_ns.sketches.cameras import pixel_directions
     from sked_ns.sketches.sketch_set import sketch_view_at
 
     views = SCENES["marker"].sketch_set(64).views

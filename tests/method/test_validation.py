@@ -8,17 +8,15 @@ import warnings
 
 import numpy as np
 import pytest
+from conftest import random_pose
 
-from sked_ns.engine.presets import PRESETS, read_preset
 from sked_ns.engine.datamanager import SkedDataManagerConfig
+from sked_ns.engine.presets import PRESETS, read_preset
+from sked_ns.errors import SkedOptionError, SkedOptionWarning
+from sked_ns.method.validation import check_options, check_sketch_pixels, warn_unusual_options
 from sked_ns.models.nerf.nerfacto import SkedNerfactoModelConfig
 from sked_ns.models.nerf.ngp import SkedNGPModelConfig
 from sked_ns.sketches.sketch_set import SketchSet, SketchView
-from sked_ns.errors import SkedOptionError, SkedOptionWarning
-from sked_ns.method.validation import (check_options, check_sketch_pixels,
-                                warn_unusual_options)
-
-from conftest import random_pose
 
 
 @pytest.mark.parametrize("name", ["lambda_pres", "lambda_colour", "lambda_sil", "lambda_sp", "lambda_new_mass",
@@ -120,8 +118,8 @@ def test_splat_settings_are_typeable_for_any_base_and_reach_the_splat_model():
     splat config built for a splatfacto base must keep what was typed."""
     from nerfstudio.models.splatfacto import SplatfactoModelConfig
 
-    from sked_ns.models.splat.model import SkedSplatModelConfig
     from sked_ns.engine.trainer import edit_model_config
+    from sked_ns.models.splat.model import SkedSplatModelConfig
 
     typed = SkedNerfactoModelConfig(keep_threshold=0.95, num_seeds=600, seed_opacity=0.02, seed_size=0.8,
                                     splat_learning_rates="splatfacto", splat_supersampling=3)

@@ -8,10 +8,10 @@ from nerfstudio.cameras.rays import Frustums, RaySamples
 from nerfstudio.field_components.field_heads import FieldHeadNames
 
 from sked_ns.engine.edit_run import edit_config
-from sked_ns.models.nerf.held_field import held_field_outputs
-from sked_ns.evaluation.render import render_at, render_base_at
-from sked_ns.sketches.sketch_set import sketch_view_at
 from sked_ns.engine.trainer import resolve_edit
+from sked_ns.evaluation.render import render_at, render_base_at
+from sked_ns.models.nerf.held_field import held_field_outputs
+from sked_ns.sketches.sketch_set import sketch_view_at
 
 
 def _samples(positions: torch.Tensor) -> RaySamples:

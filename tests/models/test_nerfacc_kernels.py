@@ -7,15 +7,13 @@ import re
 import shutil
 import subprocess
 import sys
-import tomllib
 import types
 from pathlib import Path
 
 import pytest
 import torch
 
-from sked_ns.models.nerf import nerfacc_backend
-from sked_ns.models.nerf import nerfacc_kernels
+from sked_ns.models.nerf import nerfacc_backend, nerfacc_kernels
 
 GLOBAL_LERP = re.compile(r"(?<![\w:.])lerp\s*\(")
 

@@ -8,13 +8,13 @@ import pytest
 import torch
 from reference import file_digests
 
-from sked_ns.method.frozen_base import read_model_state
 from sked_ns.engine.edit_run import edit_config, resume_config, run_edit
-from sked_ns.guidance import guidance_name
-from sked_ns.evaluation.metrics import intersection_over_sketch, psnr_outside
-from sked_ns.models.nerf.ngp import SkedNGPModel, SkedNGPModelConfig
-from sked_ns.evaluation.render import load_pipeline, render_at, render_base_at, resized_mask
 from sked_ns.engine.trainer import resolve_edit
+from sked_ns.evaluation.metrics import intersection_over_sketch, psnr_outside
+from sked_ns.evaluation.render import load_pipeline, render_at, render_base_at, resized_mask
+from sked_ns.guidance import guidance_name
+from sked_ns.method.frozen_base import read_model_state
+from sked_ns.models.nerf.ngp import SkedNGPModel, SkedNGPModelConfig
 
 ITERATIONS = 60
 

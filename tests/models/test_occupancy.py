@@ -10,7 +10,11 @@ import pytest
 import torch
 
 from sked_ns.models.nerf.occupancy import (
-    PortableOccGridEstimator, march_grid, marcher_rtol, packed_exclusive_transmittance, render_weights,
+    PortableOccGridEstimator,
+    march_grid,
+    marcher_rtol,
+    packed_exclusive_transmittance,
+    render_weights,
     sample_agreement,
 )
 

@@ -6,8 +6,8 @@ import torch
 from nerfstudio.field_components.field_heads import FieldHeadNames
 
 from sked_ns.engine.edit_run import edit_config, run_edit
-from sked_ns.evaluation.render import load_pipeline
 from sked_ns.engine.trainer import resolve_edit
+from sked_ns.evaluation.render import load_pipeline
 
 
 def _pipeline(scene, tmp_path, **model_settings):

@@ -262,8 +262,8 @@ def test_ns_train_sked_edits_a_splatfacto_run_exports_it_and_resumes(splat_scene
     """`ns-train sked --load-dir <splatfacto run>`, `ns-export gaussian-splat` of the edit (its kept rows are the
     base's, bit for bit), and resuming the edit to a longer total, which ns-export and ns-render open."""
     import numpy as np
-    from nerfstudio.scripts.exporter import ExportGaussianSplat
     import PIL.Image
+    from nerfstudio.scripts.exporter import ExportGaussianSplat
     from nerfstudio.scripts.render import RenderInterpolated
     from plyfile import PlyData
 
@@ -354,8 +354,8 @@ def test_edit_rates_let_a_seed_form_in_a_third_of_the_edit_and_stay_finite():
 
 def test_a_typed_splat_learning_rates_reaches_the_optimisers(splat_scene, tmp_path):
     from sked_ns.engine.edit_run import edit_config
-    from sked_ns.models.splat.rates import SPLATFACTO_RATES, edit_rates
     from sked_ns.engine.trainer import resolve_edit
+    from sked_ns.models.splat.rates import SPLATFACTO_RATES, edit_rates
 
     for choice in ("edit", "splatfacto"):
         config = edit_config(splat_scene["base"], splat_scene["data"], splat_scene["sketches"], tmp_path / choice,

@@ -8,8 +8,8 @@ from pathlib import Path
 
 import pytest
 import torch
-
 from reference import splat_render_brute_force
+
 from sked_ns.models.splat import projection
 from sked_ns.models.splat import torch_rasterizer as splat_render
 from sked_ns.models.splat.rasterize import rasterize

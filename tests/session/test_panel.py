@@ -5,9 +5,9 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-
 from conftest import look_at
 from session_helpers import free_port
+
 from sked_ns.sketches.cameras import PinholeCamera
 from sked_ns.sketches.sketch_set import DataparserTransform, SketchView
 

@@ -17,8 +17,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
-
 from session_helpers import SessionThread, session_config
+
 from sked_ns.sketches.sketch_set import load_sketch_set
 
 

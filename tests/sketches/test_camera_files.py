@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 import torch
 
-from sked_ns.evaluation import novel_views
 from sked_ns.demo.scenes.sphere import orbit_pose
 from sked_ns.errors import SkedUserError
+from sked_ns.evaluation import novel_views
 from sked_ns.sketches.sketch_set import DataparserTransform
 
 WIDTH, HEIGHT = 40, 30

@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 import torch
 
-from sked_ns.sketches.random_views import RandomViewSampler, orbit_position
 from sked_ns.engine.datamanager import SkedDataManagerConfig
+from sked_ns.sketches.random_views import RandomViewSampler, orbit_position
 
 CENTRE = np.array([0.3, -0.2, 0.5])
 

@@ -10,6 +10,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+from conftest import random_view
 
 from sked_ns.sketches.sketch_set import (
     FRAMES,
@@ -21,7 +22,6 @@ from sked_ns.sketches.sketch_set import (
     mask_from_image,
     save_sketch_set,
 )
-from conftest import random_view
 
 
 @pytest.fixture
@@ -288,8 +288,8 @@ def _demo_frame():
 
 
 def test_a_sketch_set_declared_in_the_wrong_frame_is_refused_naming_the_field_and_value(tmp_path):
-    from sked_ns.sketches.data_frame import SKETCH_FRAME, TRAINING_CAMERAS, model_frame_sketches
     from sked_ns.demo.scenes import sphere as scene
+    from sked_ns.sketches.data_frame import SKETCH_FRAME, TRAINING_CAMERAS, model_frame_sketches
 
     transform, positions, centre = _demo_frame()
     demo = scene.demo_sketch_set(size=64)  # data-frame poses

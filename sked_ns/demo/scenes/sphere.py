@@ -9,8 +9,8 @@ of the edit at any pose. World frame: z up, object at the origin, radius ~0.5.
 from __future__ import annotations
 
 import json
-from pathlib import Path
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Callable, Optional, Sequence, Tuple
 
 import cv2

@@ -29,9 +29,9 @@ import torch
 from torch import Tensor
 
 from sked_ns.demo.scenes.objects import (
-    BenchmarkScene,
     IMAGE_SIZE,
     TRACE_STEPS,
+    BenchmarkScene,
     Part,
     box,
     capsule,

@@ -23,13 +23,9 @@ from nerfstudio.field_components.encodings import HashEncoding
 from nerfstudio.field_components.field_heads import FieldHeadNames
 from torch import Tensor
 
-from sked_ns.method.frozen_base import read_model_state, uses_tcnn
-from sked_ns.models.nerf.chunked import chunked
-from sked_ns.models.nerf.colour_residual import ColourResidual
-from sked_ns.method.edit import SkedEdit, StepTerms
 from sked_ns.errors import SkedUserError
-from sked_ns.models.nerf.hash_grid import use_fast_hash_grids
-from sked_ns.models.nerf.held_field import held_field_outputs
+from sked_ns.method.edit import SkedEdit, StepTerms
+from sked_ns.method.frozen_base import read_model_state, uses_tcnn
 from sked_ns.method.hull_carving import SketchRayOpacity
 from sked_ns.method.losses import new_mass_loss, occupancy_log_probabilities, preservation_loss
 from sked_ns.method.options import (  # noqa: F401  (re-exported: their home was this module)
@@ -42,7 +38,10 @@ from sked_ns.method.options import (  # noqa: F401  (re-exported: their home was
     without_lpips,
 )
 from sked_ns.method.photo_anchor import anchor_rays, correct_poses, rays_away_from_edit
-
+from sked_ns.models.nerf.chunked import chunked
+from sked_ns.models.nerf.colour_residual import ColourResidual
+from sked_ns.models.nerf.hash_grid import use_fast_hash_grids
+from sked_ns.models.nerf.held_field import held_field_outputs
 
 NERF_EDIT_OWNED = SkedOptions.EDIT_OWNED | {
     # the edit's own losses

@@ -16,16 +16,18 @@ from nerfstudio.models.nerfacto import NerfactoModel, NerfactoModelConfig
 from torch import Tensor
 from torch.nn import Parameter
 
-from sked_ns.models.nerf.density_grid import BaseDensityGrid
-from sked_ns.models.nerf.field_edit import NERF_EDIT_OWNED, SkedMixin
 from sked_ns.method.options import (  # noqa: F401  (re-exported: the public names of the edit model)
     SkedOptions,
     SkedSettingsWarning,
     taken_from_the_base,
     warn_degenerate_settings,
+)
+from sked_ns.method.options import (
     without_lpips as _without_lpips,
 )
 from sked_ns.method.preservation import check_beta
+from sked_ns.models.nerf.density_grid import BaseDensityGrid
+from sked_ns.models.nerf.field_edit import NERF_EDIT_OWNED, SkedMixin
 
 
 @dataclass

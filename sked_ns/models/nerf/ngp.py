@@ -22,11 +22,11 @@ from torch import Tensor
 from torch.nn import Parameter
 
 from sked_ns.method.edit_box import occupancy_grid_mask
-from sked_ns.models.nerf.nerfacc_backend import install_lazy_backend
-from sked_ns.models.nerf.occupancy import PortableOccGridEstimator, render_weights
-from sked_ns.models.nerf.field_edit import NERF_EDIT_OWNED, SkedMixin
 from sked_ns.method.options import SkedOptions, taken_from_the_base, without_lpips
 from sked_ns.method.preservation import check_beta
+from sked_ns.models.nerf.field_edit import NERF_EDIT_OWNED, SkedMixin
+from sked_ns.models.nerf.nerfacc_backend import install_lazy_backend
+from sked_ns.models.nerf.occupancy import PortableOccGridEstimator, render_weights
 
 
 @dataclass

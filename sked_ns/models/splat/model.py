@@ -38,17 +38,22 @@ from nerfstudio.utils.colors import get_color
 from torch import Tensor
 from torch.nn import Parameter
 
-from sked_ns.sketches.cameras import viewmat
-from sked_ns.method.frozen_base import read_model_state
-from sked_ns.method.edit import SkedEdit, StepTerms
 from sked_ns.errors import SkedUserError
+from sked_ns.method.edit import SkedEdit, StepTerms
+from sked_ns.method.frozen_base import read_model_state
 from sked_ns.method.options import SkedOptions, is_carving, taken_from_the_base
 from sked_ns.method.preservation import check_beta
 from sked_ns.models.splat.densify import EditableRefinement
-from sked_ns.models.splat.gaussians import (GAUSSIAN_PARAMS, GaussianSet, base_gaussians, gaussian_colours,
-                                            splat_preservation_loss)
+from sked_ns.models.splat.gaussians import (
+    GAUSSIAN_PARAMS,
+    GaussianSet,
+    base_gaussians,
+    gaussian_colours,
+    splat_preservation_loss,
+)
 from sked_ns.models.splat.photo_anchor import SplatPhotoAnchor
 from sked_ns.models.splat.rasterize import rasterize
+from sked_ns.sketches.cameras import viewmat
 
 NEVER = 1 << 30
 """A step count no edit reaches (splatfacto's opacity reset switched off)."""

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import torch
 
+
 def project(means, quats, scales, opacities, viewmats, Ks, width, height, *, near_plane=0.01,
             far_plane=1e10, eps2d=0.3, radius_clip=0.0, rasterize_mode="classic"):
     """gsplat's projection (its torch reference, step by step): int32 radii (C,N), means2d, depths,

@@ -51,7 +51,7 @@ RENDER_MODES = ("RGB", "D", "ED", "RGB+D", "RGB+ED")
 def rasterize_torch(means, quats, scales, opacities, colors, viewmats, Ks, width, height, *, sh_degree,
                      backgrounds, near_plane, far_plane, render_mode, eps2d, radius_clip, rasterize_mode,
                      absgrad):
-    C, N = len(viewmats), len(means)
+    C = len(viewmats)
     _check_shapes(means, quats, scales, opacities, colors, viewmats, Ks, sh_degree, render_mode, rasterize_mode)
     radii, means2d, depths, conics, view_opacities = project(
         means, quats, scales, opacities, viewmats, Ks, width, height, near_plane=near_plane,
