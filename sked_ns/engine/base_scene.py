@@ -116,21 +116,17 @@ def resolve_base(load_dir: Path, step: Optional[int] = None, flag: str = "--load
             f"{config_path}: missing. {flag} must be a nerfstudio run folder (with config.yml) or its "
             "nerfstudio_models folder; the base's config.yml says which model it is."
         )
+    if checkpoint is None:
+        if not any(models_dir.glob("step-*.ckpt")):
+            refuse_unstarted_edit(config_path)
+        if not models_dir.is_dir():
+            raise SkedFileNotFoundError(f"{models_dir}: missing; the run at {run_dir} has no saved checkpoints.")
+        checkpoint = _latest_checkpoint(models_dir, step)
     try:
         config = yaml.load(config_path.read_text(), Loader=yaml.Loader)
         method, model_config = config.method_name, config.pipeline.model
     except Exception as error:  # yaml of nerfstudio configs imports arbitrary modules
         raise SkedUserError(f"{config_path}: cannot read this nerfstudio config ({error}).") from error
-    if checkpoint is None:
-        if family(model_config) == "sked" and not any(models_dir.glob("step-*.ckpt")):
-            # An edit stopped before its first checkpoint: its settings and sketch set are there to start it again.
-            sketches = f" (its sketch set is saved in {model_config.sketches})" if model_config.sketches else ""
-            raise SkedFileNotFoundError(f"{run_dir}: this edit stopped before its first checkpoint, so there is nothing "
-                                        f"to resume{sketches}. Start it again with {restart_command(config)} (its other settings "
-                                        f"are in {config_path})")
-        if not models_dir.is_dir():
-            raise SkedFileNotFoundError(f"{models_dir}: missing; the run at {run_dir} has no saved checkpoints.")
-        checkpoint = _latest_checkpoint(models_dir, step)
     if family(model_config) is None:
         raise SkedUserError(
             f"{config_path}: the base was trained with '{method}' ({type(model_config).__name__}); sked edits "
@@ -140,6 +136,22 @@ def resolve_base(load_dir: Path, step: Optional[int] = None, flag: str = "--load
     if family(model_config) == "sked":
         warn_stale_start(config, config_path)
     return BaseScene(run_dir=run_dir, checkpoint=checkpoint, config=config)
+
+
+def refuse_unstarted_edit(config_path: Path) -> None:
+    """A SKED edit stopped before its first checkpoint has nothing to resume, but its settings and sketch set are
+    there to start it again: say so, with the command (other runs without checkpoints get the usual message)."""
+    try:
+        config = yaml.load(config_path.read_text(), Loader=yaml.Loader)
+        if family(config.pipeline.model) != "sked":
+            return
+    except Exception:  # not readable here: the usual messages follow
+        return
+    sketches = config.pipeline.model.sketches
+    saved = f" (its sketch set is saved in {sketches})" if sketches else ""
+    raise SkedFileNotFoundError(f"{config_path.parent}: this edit stopped before its first checkpoint, so there is "
+                                f"nothing to resume{saved}. Start it again with {restart_command(config)} (its other "
+                                f"settings are in {config_path})")
 
 
 def warn_stale_start(config, config_path: Path) -> None:
