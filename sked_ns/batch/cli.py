@@ -224,7 +224,7 @@ def submit(args) -> int:
         for status in islice(jobs, SHOWN_JOBS):
             print(shlex.join(status.job.train_command()))  # pasted into a shell, each argument stays one
         if len(jobs) > SHOWN_JOBS:
-            print(f"... and {len(jobs) - SHOWN_JOBS} more edits like these (sked-batch status {args.plan} lists them)")
+            print(f"... and {len(jobs) - SHOWN_JOBS} more edits like these (sked-batch status {shlex.quote(str(args.plan))} lists them)")
         return 0
     devices = None if args.devices is None else [] if args.devices == "none" else args.devices.split(",")
     codes = run_local(list(jobs.run()), devices)

@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import bisect
 import re
+import shlex
 from collections import abc
 from dataclasses import dataclass, field, replace
 from functools import cached_property
@@ -203,7 +204,7 @@ class Plan:
             if candidate == name:
                 return self.jobs[index]
         raise SkedUserError(f"{self.path}: no job named {name!r}; its jobs are: {some_names(self)} "
-                            f"(sked-batch status {self.path} lists them all).")
+                            f"(sked-batch status {shlex.quote(str(self.path))} lists them all).")
 
 
 def some_names(plan: Plan) -> str:

@@ -8,6 +8,7 @@ submitted with Slurm's own `sbatch`; then a report job that waits for the array 
 from __future__ import annotations
 
 import itertools
+import json
 import os
 import queue
 import shlex
@@ -120,7 +121,8 @@ def sbatch_script(plan: Plan, jobs: List[Job], options: SlurmOptions) -> str:
     """A job array, task i -> the i-th job to run; output of each task in <output>/slurm/<array>_<task>.out."""
     logs = plan.output / "slurm"
     array = f"0-{len(jobs) - 1}" + (f"%{options.max_parallel}" if options.max_parallel else "")
-    lines = ["#!/bin/bash", f"# sked-batch {plan.path}: {len(jobs)} edit(s), written {now()}",
+    # The plan's path in JSON's escapes: a newline in it must not end the comment line.
+    lines = ["#!/bin/bash", f"# sked-batch {json.dumps(str(plan.path))}: {len(jobs)} edit(s), written {now()}",
              f"#SBATCH --job-name=sked-batch-{plan.name}", f"#SBATCH --array={array}",
              f"#SBATCH --output={logs}/%A_%a.out"]
     lines += [f"#SBATCH {directive}" for directive in options.directives()]

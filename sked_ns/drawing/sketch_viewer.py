@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import shlex
 import sys
 import tempfile
 import threading
@@ -351,7 +352,7 @@ def entrypoint(argv: Optional[List[str]] = None) -> None:
         path = write_canvases(renderer(pipeline), training_cameras(pipeline, args.images), transform, args.folder,
                               names=[f"training image {i}" for i in args.images])
         print(f"wrote {path}: paint the region on a copy of each view_XX.png saved as view_XX_sketch.png "
-              f"(or a white-on-black view_XX_mask.png), then run: sked-sketch import {args.folder} --out SKETCHES")
+              f"(or a white-on-black view_XX_mask.png), then run: sked-sketch import {shlex.quote(str(args.folder))} --out SKETCHES")
         return
     if argv and argv[0] == "import":
         parser = ArgumentParser(prog="sked-sketch import", description="Painted canvases -> sketch set.")

@@ -179,7 +179,7 @@ def dataparser_command(base: BaseScene) -> str:
     datamanager = base.config.pipeline.datamanager
     dataparser = datamanager.dataparser
     data = getattr(datamanager, "data", None) or getattr(dataparser, "data", None) or "<the base data>"
-    return f"`{dataparser_name(dataparser)} --data {data}`"
+    return f"`{shlex.join([dataparser_name(dataparser), '--data', str(data)])}`"
 
 
 def restart_command(config) -> str:

@@ -221,3 +221,34 @@ def test_the_edit_takes_the_field_implementation_from_the_base_checkpoint(tmp_pa
     else:
         start_edit(config, base)
         assert config.pipeline.model.implementation == expected
+
+
+def test_printed_commands_are_shell_quoted_and_run_as_printed(tmp_path):
+    """What a message offers to type (the dataparser of a frame mismatch, the command that starts an edit again)
+    splits back into the same words in a shell, whatever the paths and the prompt hold."""
+    import shlex
+    import subprocess
+    from pathlib import Path
+
+    from nerfstudio.data.dataparsers.nerfstudio_dataparser import NerfstudioDataParserConfig
+
+    from sked_ns.engine.base_scene import dataparser_command, restart_command
+
+    data = tmp_path / "my data; echo INJECTED"
+    config = copy.deepcopy(method_configs["nerfacto"])
+    config.pipeline.datamanager.dataparser = NerfstudioDataParserConfig(data=data)
+    config.pipeline.datamanager.data = data
+    shown = dataparser_command(types.SimpleNamespace(config=config)).strip("`")
+    assert shlex.split(shown) == ["nerfstudio-data", "--data", str(data)]
+    edit = copy.deepcopy(SkedTrainerConfig(method_name="sked"))
+    edit.pipeline.datamanager.dataparser = NerfstudioDataParserConfig(data=data)
+    edit.pipeline.datamanager.data = data
+    edit.pipeline.model.base_checkpoint = Path("/runs/it's mine/nerfstudio_models/step-000000001.ckpt")
+    edit.pipeline.model.sketches = tmp_path / "sketches $(touch PWNED)"
+    edit.pipeline.model.prompt = 'a "red" hat; rm -rf ~'
+    line = restart_command(edit)
+    words = subprocess.run(["bash", "-c", f"set -- {line}; printf '%s\\0' \"$@\""], capture_output=True,
+                           text=True, cwd=tmp_path, check=True).stdout.split("\0")[:-1]
+    assert words == ["ns-train", "sked", "--load-dir", "/runs/it's mine", "--sketches", str(edit.pipeline.model.sketches),
+                     "--prompt", 'a "red" hat; rm -rf ~', "nerfstudio-data", "--data", str(data)]
+    assert not (tmp_path / "PWNED").exists()
