@@ -59,6 +59,16 @@ class ArgumentParser(argparse.ArgumentParser):
         raise SkedUserError(f"{self.prog}: {message} (see {self.prog} --help).")
 
 
+class DefaultsHelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
+    """argparse's `(default: X)` where the help does not already say its default, and never `(default: None)`."""
+
+    def _get_help_string(self, action) -> str:
+        help_text = action.help or ""
+        if "default" in help_text or action.default is None or action.default is argparse.SUPPRESS:
+            return help_text
+        return super()._get_help_string(action)
+
+
 def excepthook(kind, error, traceback) -> None:
     if os.environ.get(TRACEBACK_ENV, "") in ("", "0"):
         if issubclass(kind, SkedUserError):

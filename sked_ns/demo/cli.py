@@ -7,11 +7,11 @@ from pathlib import Path
 from typing import List, Optional
 
 from sked_ns.demo import BASES
-from sked_ns.errors import ArgumentParser
+from sked_ns.errors import ArgumentParser, DefaultsHelpFormatter
 
 
 def demo_parser() -> argparse.ArgumentParser:
-    parser = ArgumentParser(prog="sked-demo", formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+    parser = ArgumentParser(prog="sked-demo", formatter_class=DefaultsHelpFormatter,
                             description="A real SKED edit of the embedded demo scene (a sphere gets a hat from two "
                                         "sketches), end to end, on the CPU or a GPU; reports the paper's metrics.")
     parser.add_argument("--output", type=Path, default=Path("demo_output"), help="folder for everything the demo writes")

@@ -153,8 +153,8 @@ def resume_edit(config: SkedTrainerConfig, base: BaseScene) -> None:
             "continue it, or --progressive True to edit its result again."
         )
     config.load_dir, config.load_step = base.checkpoint.parent, step  # this checkpoint, not a newer broken one
-    CONSOLE.print(f"Resuming the SKED edit {base.run_dir} from {base.checkpoint.name} to "
-                  f"{config.max_num_iterations} iterations")
+    say_once(f"Resuming the SKED edit {base.run_dir} from {base.checkpoint.name} to {config.max_num_iterations} "
+             "iterations")
 
 
 def start_edit(config: SkedTrainerConfig, base: BaseScene) -> None:
@@ -168,7 +168,19 @@ def start_edit(config: SkedTrainerConfig, base: BaseScene) -> None:
         config.optimizers = optimizers
     config.load_dir = None  # the base is not a run to resume: fresh optimisers, step 0
     config.load_step = None
-    CONSOLE.print(f"Editing the {base.method} scene {base.run_dir} ({base.checkpoint.name})")
+    if config.experiment_name is None:  # nerfstudio names runs after --data, which an edit gives its dataparser
+        config.experiment_name = base.config.experiment_name
+    say_once(f"Editing the {base.method} scene {base.run_dir} ({base.checkpoint.name})")
+
+
+_SAID: set = set()
+
+
+def say_once(line: str) -> None:
+    """Print a line of the config's resolution once: nerfstudio's hooks resolve it more than once."""
+    if line not in _SAID:
+        _SAID.add(line)
+        CONSOLE.print(line)
 
 
 def check_data(config: TrainerConfig, base: BaseScene) -> None:

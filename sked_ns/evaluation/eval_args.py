@@ -6,7 +6,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from sked_ns.errors import ArgumentParser
+from sked_ns.errors import ArgumentParser, DefaultsHelpFormatter
 
 DEFAULT_CLIP = "openai/clip-vit-base-patch32"
 
@@ -23,7 +23,7 @@ def positive_int(text: str) -> int:
 
 
 def eval_parser() -> argparse.ArgumentParser:
-    parser = ArgumentParser(prog="sked-eval", formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+    parser = ArgumentParser(prog="sked-eval", formatter_class=DefaultsHelpFormatter,
                             description="Score an edit: the paper's metrics at its sketch views (IoS, PSNR / SSIM / "
                                         "LPIPS outside the sketches, CLIP similarity) and novel views (what it "
                                         "keeps, where it leaks, and against --target). Writes a JSON and a "

@@ -549,3 +549,15 @@ def test_a_splat_base_s_content_is_its_opaque_gaussians_in_the_box():
         model = SimpleNamespace(frozen_gaussians={"means": means,
                                                   "opacities": torch.logit(torch.tensor([[opacity], [opacity]]))})
         assert SkedSplatModel.base_content_near(model, np.full(3, low), np.full(3, high)) is expected
+
+
+def test_an_edit_is_filed_under_its_base_s_experiment(scene, tmp_path):
+    """outputs/<the base's experiment>/sked/<timestamp>, as the README shows (not outputs/unnamed/)."""
+    config = edit_config(scene["base"], scene["data"], scene["sketches"], tmp_path / "out", iterations=2)
+    config.experiment_name = None  # not typed
+    resolve_edit(config)
+    assert config.experiment_name == resolve_base(scene["base"]).config.experiment_name != "unnamed"
+    config.experiment_name = "typed"
+    resolve_edit(config)
+    assert config.experiment_name == "typed"
+

@@ -245,3 +245,14 @@ def test_sked_sketch_usage_names_its_subcommands():
     program = shutil.which("sked-sketch", path=str(Path(sys.executable).parent))
     usage = subprocess.run([program, "--help"], capture_output=True, text=True, timeout=300).stdout.split("\n\n")[0]
     assert all(f"sked-sketch {sub}" in usage for sub in ("canvases", "import", "check"))
+
+
+def test_each_option_s_help_names_its_default_once():
+    from sked_ns.demo.cli import demo_parser
+    from sked_ns.evaluation.eval_args import eval_parser
+
+    for parser in (eval_parser(), demo_parser()):
+        text = " ".join(parser.format_help().split())
+        assert "(default: None)" not in text, parser.prog
+        for option in text.split(" --")[1:]:
+            assert option.count("default") <= 1, f"{parser.prog} --{option}"
