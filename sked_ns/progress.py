@@ -7,14 +7,20 @@ import threading
 import time
 from typing import Optional, TextIO
 
+EVERY_SECONDS = 10.0
+"""Work of many small items (a base's fitting steps) says how far it is at most this often."""
+
 
 class Progress:
     """Counts finished items of a known total and says so on stderr (a log keeps every line)."""
 
-    def __init__(self, command: str, what: str, total: int, stream: Optional[TextIO] = None):
+    def __init__(self, command: str, what: str, total: int, stream: Optional[TextIO] = None,
+                 every_seconds: float = 0.0):
+        """`every_seconds`: at most one line that often (and the last), for many small items."""
         self.command, self.what, self.total = command, what, max(int(total), 0)
         self.stream = stream if stream is not None else sys.stderr
         self.done, self.started = 0, time.monotonic()
+        self.every_seconds, self._said = every_seconds, float("-inf")
         self._lock = threading.Lock()  # sked-batch finishes jobs from several threads
 
     def line(self, done: int, elapsed: float, note: str = "") -> str:
@@ -24,7 +30,11 @@ class Progress:
     def step(self, note: str = "") -> None:
         with self._lock:
             self.done += 1
-            print(self.line(self.done, time.monotonic() - self.started, note), file=self.stream, flush=True)
+            now = time.monotonic()
+            if now - self._said < self.every_seconds and self.done < self.total:
+                return
+            self._said = now
+            print(self.line(self.done, now - self.started, note), file=self.stream, flush=True)
 
 
 def _duration(seconds: float) -> str:

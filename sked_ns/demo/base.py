@@ -24,6 +24,7 @@ from nerfstudio.field_components.field_heads import FieldHeadNames
 
 from sked_ns.demo.scenes import sphere as demo_scene
 from sked_ns.models.nerf.nerfacto import _without_lpips
+from sked_ns.progress import EVERY_SECONDS, Progress
 from sked_ns.sketches.sketch_set import DataparserTransform
 
 PEAK_DENSITY = 100.0
@@ -139,6 +140,7 @@ def build_demo_base(
         model.field.eval()  # fit the appearance NGP renders with (no per-image embedding)
     optimizer = torch.optim.Adam(parameters, lr=1e-2)
     radius = demo_scene.SPHERE_RADIUS * transform.scale * 1.6
+    progress = Progress("demo base", f"{method} fitting step", steps, every_seconds=EVERY_SECONDS)
     for _ in range(steps):
         # Points near the object, in the scene box, and out to infinity (nerfacto's contracted space).
         near = centre + (torch.rand(points_per_step // 2, 3, device=device) * 2 - 1) * radius
@@ -165,6 +167,7 @@ def build_demo_base(
         optimizer.zero_grad()
         loss.backward()
         optimizer.step()
+        progress.step()
 
     if method != "nerfacto":
         with torch.no_grad():

@@ -25,6 +25,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from sked_ns.progress import EVERY_SECONDS, Progress
 from sked_ns.sketches.cameras import viewmat
 
 
@@ -196,6 +197,7 @@ def fit_splat_base(data: Path, output_dir: Path, fit: SplatFit = SplatFit(), see
     last_fit.clear()
     last_fit["seed_psnr"] = _mean_psnr(model, datamanager.cached_train, datamanager.train_dataset.cameras, rasterize)
     model.train()
+    progress = Progress("demo base", "splatfacto fitting step", fit.steps, every_seconds=EVERY_SECONDS)
     for step in range(fit.steps):
         # nerfstudio's trainer: the step callback, forward, loss, backward, Adam, schedulers, then refinement.
         model.step_cb(optimizers, step)
@@ -206,6 +208,7 @@ def fit_splat_base(data: Path, output_dir: Path, fit: SplatFit = SplatFit(), see
         optimizers.optimizer_step_all()
         optimizers.scheduler_step_all(step)
         model.step_post_backward(step)
+        progress.step()
 
     model.eval()
     last_fit.update(

@@ -22,3 +22,16 @@ def test_each_step_is_one_line_on_its_stream():
     lines = stream.getvalue().splitlines()
     assert len(lines) == 2 and lines[0].startswith("sked-batch: edits 1/2 (") and lines[0].endswith(": first done")
     assert lines[1].startswith("sked-batch: edits 2/2 (") and "left" not in lines[1]
+
+
+def test_many_small_items_say_how_far_at_most_every_so_often_and_at_the_end(monkeypatch):
+    import sked_ns.progress as progress_module
+
+    clock = iter(float(t) for t in [0, 0, 1, 2, 12, 13, 14])  # start, then one reading per step
+    monkeypatch.setattr(progress_module.time, "monotonic", lambda: next(clock))
+    stream = io.StringIO()
+    progress = Progress("demo base", "fitting step", 6, stream=stream, every_seconds=10.0)
+    for _ in range(6):
+        progress.step()
+    assert [line.split(" (")[0] for line in stream.getvalue().splitlines()] == [
+        "demo base: fitting step 1/6", "demo base: fitting step 4/6", "demo base: fitting step 6/6"]
