@@ -19,6 +19,16 @@ from sked_ns.drawing.sketching import SketchSession
 
 CARVE_NOTE = "No prompt: **Start edit** carves the sketched region away."
 PROMPT_NOTE = "Stable Diffusion fills the sketched region with the prompt."
+NO_PROMPT_NOTE = "The `{name}` guidance uses no prompt: **Start edit** fills the sketched region as it steers."
+
+
+def prompt_note(prompt: Optional[str], guidance=None) -> str:
+    """What Start edit will do with this prompt under this guidance (a config; None: Stable Diffusion's)."""
+    if guidance is not None and not guidance.uses_prompt:
+        from sked_ns.guidance import guidance_name
+
+        return NO_PROMPT_NOTE.format(name=guidance_name(guidance))
+    return PROMPT_NOTE if prompt and prompt.strip() else CARVE_NOTE
 BASE_CHOICE = "the base"
 
 
@@ -41,8 +51,8 @@ def round_label(number: int) -> str:
 class SessionPanel:
     """Prompt, Start edit, Edit again, the round to start from and the list of rounds, above the sketch tools."""
 
-    def __init__(self, server, new_sketches: Callable[[], SketchSession], prompt: Optional[str]) -> None:
-        self.server, self.new_sketches = server, new_sketches
+    def __init__(self, server, new_sketches: Callable[[], SketchSession], prompt: Optional[str], guidance=None) -> None:
+        self.server, self.new_sketches, self.guidance = server, new_sketches, guidance
         self.requests: "queue.Queue[StartRequest]" = queue.Queue()
         self.rounds: List[str] = []  # one line per round: its number, prompt and folder
         self.on_edit_again: Callable[[], None] = lambda: None  # the session pauses the round being trained
@@ -54,7 +64,7 @@ class SessionPanel:
         with gui.add_folder("SKED session"):
             self.status = gui.add_markdown("")
             self.prompt_text = gui.add_text("Prompt", initial_value=prompt or "")
-            self.prompt_note = gui.add_markdown(PROMPT_NOTE if prompt else CARVE_NOTE)
+            self.prompt_note = gui.add_markdown(prompt_note(prompt, guidance))
             self.source = gui.add_dropdown("Start from", options=[BASE_CHOICE], initial_value=BASE_CHOICE, visible=False)
             self.start_button = gui.add_button("Start edit", disabled=True)
             self.again_button = gui.add_button("Edit again", disabled=True)
@@ -133,7 +143,7 @@ class SessionPanel:
         self.start_button.disabled = not self.sketching or len(self.sketch.session.views) < 2
 
     def _prompt_changed(self) -> None:
-        self.prompt_note.content = PROMPT_NOTE if self.prompt() else CARVE_NOTE
+        self.prompt_note.content = prompt_note(self.prompt(), self.guidance)
 
     def _guarded(self, action) -> None:
         with self._lock:

@@ -70,7 +70,7 @@ class EditSession:
         preview = CPU_PREVIEW_WIDTH if config.machine.device_type == "cpu" else None
         render = renderer(self, self.lock, preview)
         self.panel = SessionPanel(self.viewer.viser_server, lambda: SketchSession(render, transform, scene_box),
-                                  prompt=model.prompt)
+                                  prompt=model.prompt, guidance=model.guidance)
         self.panel.on_edit_again, self.panel.on_start = self._pause, self._stop_round
         self.trainer: SkedTrainer = trainer  # the round being trained
         self._installed: list = []  # the current round's model controls in the viewer

@@ -72,3 +72,15 @@ def test_rounds_are_listed_and_edit_again_offers_each_and_the_base(panel):
     assert panel.start().source is None
     panel.refused("the views hold too few pixels")
     assert panel.last_message == "**Error:** the views hold too few pixels" and not panel.start_button.disabled
+
+
+def test_the_prompt_note_says_what_start_edit_does_under_each_guidance():
+    from sked_ns.guidance import guidance_config
+    from sked_ns.session.panel import CARVE_NOTE, PROMPT_NOTE, prompt_note
+
+    stable_diffusion, reference = guidance_config("stable-diffusion"), guidance_config("reference")
+    assert prompt_note("a hat", stable_diffusion) == PROMPT_NOTE and prompt_note("  ", stable_diffusion) == CARVE_NOTE
+    assert prompt_note(None, None) == CARVE_NOTE
+    for prompt in ("a hat", None):
+        note = prompt_note(prompt, reference)
+        assert "`reference` guidance uses no prompt" in note and "Stable Diffusion" not in note
