@@ -79,7 +79,7 @@ class MovedModuleFinder(importlib.abc.MetaPathFinder):
     def find_spec(self, fullname, path=None, target=None):
         new = MOVED.get(fullname)
         if new is None or fullname == "sked_ns.sketches":
-            return None  # sked_ns.sketches is a real package now; its __init__ re-exports the old module's names
+            return None  # sked_ns.sketches is a real package now; its __init__ answers the old module's names
         return importlib.util.spec_from_loader(fullname, _Alias(new))
 
 

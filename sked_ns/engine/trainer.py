@@ -235,7 +235,7 @@ class SkedTrainer(Trainer):
         """The sketch views (frusta showing their masks) and the edit box, beside the training cameras.
 
         Through viser directly: nerfstudio's ViewerControl offers no scene objects (the model's controls,
-        beta and the show-base / tint switches, are nerfstudio viewer elements, core.py)."""
+        beta and the show-base / tint switches, are nerfstudio viewer elements, method/edit.py)."""
         from sked_ns.engine.viewer import show_sketch_views
 
         model = self.pipeline.model

@@ -7,7 +7,7 @@ the edit box, the guidance call on a rendered image, L_sil on a per-pixel editab
 SKED's step (warm-ups, resume), the frozen base's plumbing, the base-photo check and the
 viewer controls.
 
-A representation (`core.SkedMixin` for NeRF fields, the splat model) mixes `SkedEdit` into a
+A representation (`models.nerf.field_edit.SkedMixin` for NeRF fields, the splat model) mixes `SkedEdit` into a
 nerfstudio `Model` and supplies:
 
 - `populate_modules`: the parent's modules, then `_setup_sked()`, the base's weights, then

@@ -76,7 +76,7 @@ class SkedOptions:
     """Weight of L_new (losses.new_mass_loss; NeRF bases): the opacity the edit adds over the base near the sketches,
     counted only where every sketch ray through a point already holds more than 0.9 of new opacity (or off the
     sketches: hull_carving.SketchRayOpacity), so a two-view visual hull is carved once filled, not before the part
-    forms. 0 (default): the paper's losses; measured only on `marker` so far (docs/benchmarks.md, Edit quality)."""
+    forms. 0 (default): the paper's losses (docs/benchmarks.md, Edit quality, says where it was measured)."""
     lambda_carve: float = 5.0
     """Weight of the carving loss (empty the sketched region) when there is no prompt."""
     occupancy_threshold: float = 5.0
@@ -114,7 +114,7 @@ class SkedOptions:
     base's density and colour (held_field.py; the editable field is trained only at the others), and splat bases'
     Gaussians whose centre's weight is above it are never optimised, densified, pruned or reset. The rest is held to
     the base by L_pres. 1 holds nothing exactly: the paper's soft L_pres alone."""
-    # Gaussian-splat bases only (splat_model.py); here so `ns-train sked` can parse them for any base.
+    # Gaussian-splat bases only (models/splat/model.py); here so `ns-train sked` can parse them for any base.
     num_seeds: int = 3000
     """Splats: new Gaussians seeded inside the sketches' visual hull for new content (none when carving), each as wide
     as their spacing (seed_size). With supersampled training renders more seeds give a sharper part, at more memory

@@ -58,3 +58,23 @@ def test_loaded_values_are_intact(tmp_path):
     loaded = torch.load(path)
     assert loaded["lr"] == 0.125 and loaded["step"] == 5
     np.testing.assert_array_equal(loaded["array"], [0.0, 1.0, 2.0])
+
+
+def test_the_old_sketches_module_s_names_still_import():
+    import subprocess
+    import sys
+
+    # A fresh process: what a script written for the one-module sked_ns.sketches does first.
+    code = ("from sked_ns.sketches import load_sketch_set, SketchSet\n"
+            "from sked_ns.sketches import sketch_set\n"
+            "assert load_sketch_set is sketch_set.load_sketch_set and SketchSet is sketch_set.SketchSet\n"
+            "import sked_ns.sketches as package\n"
+            "try:\n    package.no_such_name\nexcept AttributeError:\n    print('ok')\n")
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert result.stdout.strip() == "ok", result.stderr[-2000:]
+    from pathlib import Path
+
+    import sked_ns.sketches as package
+
+    here = {path.stem for path in Path(package.__file__).parent.glob("*.py")} - {"__init__"}
+    assert package._SUBMODULES == here, "sketches/__init__.py's _SUBMODULES lists the package's modules"
