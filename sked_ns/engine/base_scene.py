@@ -19,7 +19,7 @@ import numpy as np
 import yaml
 
 from sked_ns.errors import SkedFileNotFoundError, SkedUserError
-from sked_ns.models.registry import family
+from sked_ns.models.registry import family, representation_of
 from sked_ns.sketches.sketch_set import DataparserTransform
 
 
@@ -42,6 +42,11 @@ class BaseScene:
     def family(self) -> str:
         """nerfacto, instant-ngp, splatfacto or sked (models/registry.py)."""
         return family(self.model_config)
+
+    @property
+    def representation(self):
+        """Its registry row (models/registry.py); None for a SKED edit (an edit of any kind)."""
+        return None if self.family == "sked" else representation_of(self.model_config)
 
     @property
     def model_config(self):

@@ -135,19 +135,21 @@ class StepWork:
 
 
 def step_work(options, datamanager, representation: str) -> StepWork:
+    from sked_ns.models.registry import representation_named
     from sked_ns.sketches.sketch_set import load_sketch_set, sketch_view_at, sketch_view_size
 
+    row = representation_named(representation)
     random_view = float(options.guidance_resolution ** 2)
     views = load_sketch_set(options.sketches).views
-    if representation == "splatfacto":  # the supersampled random view, the sketch views, a photo at the view's size
+    if row.renders == "cameras":  # the supersampled random view, the sketch views, a photo at the view's size
         sketch = float(sum(math.prod(sketch_view_size(view, options.silhouette_resolution)) for view in views))
         photo = random_view if options.effective_lambda_photo > 0 else 0.0
         return StepWork(random_view * max(int(options.splat_supersampling), 1) ** 2 + sketch + photo)
     photos = options.lambda_photo > 0 and options.keep_threshold > options.photo_threshold
     scale = float(options.samples_per_ray_scale)
-    if representation == "nerfacto":
+    if row.samples_from_proposals:
         samples = options.num_nerf_samples_per_ray + sum(options.num_proposal_samples_per_ray)
-        scale *= samples / STEP_MODELS["nerfacto"].samples_per_ray
+        scale *= samples / STEP_MODELS[representation].samples_per_ray
     # A NeRF renders the sketch views only at the masks' pixels (L_sil counts nothing else).
     masked = float(sum(int(sketch_view_at(view, options.silhouette_resolution)[1].sum()) for view in views))
     return StepWork(random_view, masked + (datamanager.train_num_rays_per_batch if photos else 0), scale,
@@ -157,8 +159,10 @@ def step_work(options, datamanager, representation: str) -> StepWork:
 def nerf_side(representation: str, work: StepWork, base_bytes: float) -> Tuple[float, float]:
     """(the side's own step peak, what it holds when the guidance runs), in bytes; the gradients of the editable
     weights (base_bytes) come in the backward pass."""
+    from sked_ns.models.registry import representation_named
+
     model = STEP_MODELS[representation]
-    if representation == "splatfacto":  # per rendered pixel and per Gaussian: kept for the backward pass, and added
+    if representation_named(representation).renders == "cameras":  # per pixel and per Gaussian: kept, and added
         held = work.rays * model.kept_per_ray + base_bytes * model.kept_per_weight_byte
         return held + work.rays * model.activation_per_ray + base_bytes * (model.step_per_weight_byte + 1), held
     rays = work.rays + work.sketch_rays
@@ -223,8 +227,10 @@ def sd_bytes(guidance, device_type: str) -> Tuple[float, float]:
 def resident_bytes(representation: str, base_bytes: float, options) -> float:
     """What the edit holds between steps: its model and optimiser state (splats: the seeds too)."""
     from sked_ns.method.options import is_carving
+    from sked_ns.models.registry import representation_named
 
-    seeds = options.num_seeds * SEED_BYTES if representation == "splatfacto" and not is_carving(options) else 0.0
+    seeds_new = representation_named(representation).seeds_new_gaussians and not is_carving(options)
+    seeds = options.num_seeds * SEED_BYTES if seeds_new else 0.0
     return STEP_MODELS[representation].resident_per_weight_byte * base_bytes + seeds
 
 
@@ -276,7 +282,7 @@ def options_that_fit(config, free: float) -> List[str]:
     if torch.cuda.is_available() and torch.cuda.device_count() > 1 and hasattr(config.pipeline.model.guidance, "device"):
         tries.append(("--pipeline.model.guidance.device cuda:1", lambda c: setattr(c.pipeline.model.guidance, "device", "cuda:1")))
     default_seeds = SkedOptions.num_seeds
-    if representation_of(config.pipeline.model).name == "splatfacto" and config.pipeline.model.num_seeds > default_seeds:
+    if representation_of(config.pipeline.model).seeds_new_gaussians and config.pipeline.model.num_seeds > default_seeds:
         tries.append((f"--pipeline.model.num-seeds {default_seeds}",
                       lambda c: setattr(c.pipeline.model, "num_seeds", default_seeds)))
     tries += [

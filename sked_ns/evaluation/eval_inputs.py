@@ -119,8 +119,8 @@ def check_base(base: Path, edit, device: str) -> None:
     if scene.run_dir.resolve() == edit.run_dir.resolve():
         raise SkedUserError(f"--base {base}: that is the edit itself; leave --base out to compare the edit with its "
                             "base, or pass the base's run folder.")
-    if scene.family == "instant-ngp" and not device.startswith("cuda"):
-        raise SkedUserError(f"--base {base}: an instant-ngp run renders with nerfacc's CUDA kernels only; pass "
+    if scene.representation is not None and scene.representation.stock_render_needs_cuda and not device.startswith("cuda"):
+        raise SkedUserError(f"--base {base}: an {scene.family} run renders with CUDA kernels only; pass "
                             "--device cuda on a GPU, or leave --base out (the edit's frozen copy of its base renders "
                             "anywhere).")
     if scene.family == "sked":

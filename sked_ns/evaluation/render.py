@@ -85,12 +85,13 @@ def load_pipeline(run_dir: Path, device: str = "cpu", flag: str = "--load-dir", 
     from sked_ns.method.options import without_lpips
 
     run = resolve_base(run_dir, flag=flag)
-    if run.family == "instant-ngp" and not device.startswith("cuda"):
+    needs_cuda = run.representation is not None and run.representation.stock_render_needs_cuda
+    if needs_cuda and not device.startswith("cuda"):
         raise SkedUserError(
-            f"{run.run_dir / 'config.yml'}: nerfstudio renders instant-ngp runs with nerfacc's CUDA kernels only. "
+            f"{run.run_dir / 'config.yml'}: nerfstudio renders {run.family} runs with CUDA kernels only. "
             "Use a GPU, or compare with a SKED edit's own frozen copy of its base (sked-eval without --base)."
         )
-    if run.family == "instant-ngp":
+    if needs_cuda:
         from sked_ns.models.nerf.nerfacc_backend import install_lazy_backend
 
         install_lazy_backend()  # a stock instant-ngp base rendered by a sked-* command gets kernels that build

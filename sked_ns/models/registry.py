@@ -40,6 +40,13 @@ class Representation:
     """What the model renders at once: ray bundles (NeRFs) or whole cameras (Gaussian splats)."""
     optimizers: Optional[str] = None
     """`module:function(iterations, options) -> optimizers` where the presets' NeRF groups do not fit; None keeps them."""
+    stock_render_needs_cuda: bool = False
+    """nerfstudio renders a stock run of this kind with CUDA kernels only (instant-ngp's nerfacc marching); SKED's
+    own commands install kernels that build here (models/nerf/nerfacc_backend.py)."""
+    samples_from_proposals: bool = False
+    """Samples per ray follow the config's proposal and field counts (nerfacto); else the scene does (a grid)."""
+    seeds_new_gaussians: bool = False
+    """An edit starts new Gaussians in the sketches' hull (`num_seeds`): the memory plan counts them."""
 
     def sked_config_class(self) -> type:
         return _load(self.sked_config)
@@ -50,9 +57,11 @@ class Representation:
 
 REPRESENTATIONS: Tuple[Representation, ...] = (  # the most specific config type first
     Representation("splatfacto", SplatfactoModelConfig, "sked_ns.models.splat.model:SkedSplatModelConfig", "cameras",
-                   optimizers="sked_ns.models.splat.rates:splat_optimizers"),
-    Representation("instant-ngp", InstantNGPModelConfig, "sked_ns.models.nerf.ngp:SkedNGPModelConfig", "rays"),
-    Representation("nerfacto", NerfactoModelConfig, "sked_ns.models.nerf.nerfacto:SkedNerfactoModelConfig", "rays"),
+                   optimizers="sked_ns.models.splat.rates:splat_optimizers", seeds_new_gaussians=True),
+    Representation("instant-ngp", InstantNGPModelConfig, "sked_ns.models.nerf.ngp:SkedNGPModelConfig", "rays",
+                   stock_render_needs_cuda=True),
+    Representation("nerfacto", NerfactoModelConfig, "sked_ns.models.nerf.nerfacto:SkedNerfactoModelConfig", "rays",
+                   samples_from_proposals=True),
 )
 
 
@@ -62,6 +71,14 @@ def representation_of(model_config) -> Optional[Representation]:
         if isinstance(model_config, row.base_config):
             return row
     return None
+
+
+def representation_named(name: str) -> Representation:
+    """The row called `name` (nerfacto, instant-ngp, splatfacto)."""
+    for row in REPRESENTATIONS:
+        if row.name == name:
+            return row
+    raise KeyError(f"no representation {name!r}; known: {[row.name for row in REPRESENTATIONS]}")
 
 
 def family(model_config) -> Optional[str]:
