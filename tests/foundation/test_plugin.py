@@ -116,3 +116,33 @@ def test_the_method_never_imports_the_demo():
             offenders += [f"{path.relative_to(package)}: {name}" for name in names
                           if name == "sked_ns.demo" or name.startswith("sked_ns.demo.")]
     assert not offenders, offenders
+
+
+def test_importing_the_plugin_changes_only_what_the_development_guide_lists():
+    """Every ns-* process imports sked_ns: its hook, its finder and numpy's types in torch's safe list, nothing else
+    (docs/development.md, What the plugin changes outside SKED)."""
+    import json
+    import subprocess
+    import sys
+
+    code = """if True:
+        import json, sys, torch
+        hook, meta = sys.excepthook, list(sys.meta_path)
+        safe = {repr(t) for t in torch.serialization.get_safe_globals()}
+        import sked_ns
+        from sked_ns.moved import MovedModuleFinder
+        finder = [f for f in sys.meta_path if f not in meta]
+        print(json.dumps({
+            "finders": [type(f).__name__ for f in finder],
+            "answers_others": [n for n in ("json", "nerfstudio.models.nerfacto", "sked_ns.errors")
+                               if MovedModuleFinder().find_spec(n) is not None],
+            "hook": sys.excepthook.__module__ + "." + sys.excepthook.__name__,
+            "chains_to": sked_ns.errors._previous_excepthook is hook,
+            "added": sorted(f"{t.__module__}.{t.__name__}" for t in torch.serialization.get_safe_globals()
+                            if repr(t) not in safe),
+        }))"""
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    changed = json.loads(result.stdout.strip().splitlines()[-1])
+    assert changed["finders"] == ["MovedModuleFinder"] and changed["answers_others"] == []
+    assert changed["hook"] == "sked_ns.errors.excepthook" and changed["chains_to"]
+    assert changed["added"] and all(name.startswith("numpy") for name in changed["added"]), changed["added"]
