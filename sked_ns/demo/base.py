@@ -23,7 +23,7 @@ from nerfstudio.data.datamanagers.base_datamanager import VanillaDataManagerConf
 from nerfstudio.field_components.field_heads import FieldHeadNames
 
 from sked_ns.demo.scenes import sphere as demo_scene
-from sked_ns.models.nerf.nerfacto import _without_lpips
+from sked_ns.method.options import without_lpips
 from sked_ns.progress import EVERY_SECONDS, Progress
 from sked_ns.sketches.sketch_set import DataparserTransform
 
@@ -127,7 +127,7 @@ def build_demo_base(
         config = nerfacto_config(Path(data), Path(output_dir), tiny, device)
     else:
         config = ngp_config(Path(data), Path(output_dir), tiny, method, device)
-    with _without_lpips():
+    with without_lpips():
         pipeline = config.pipeline.setup(device=device, test_mode="val")
     outputs = pipeline.datamanager.train_dataparser_outputs
     transform = DataparserTransform(outputs.dataparser_transform.numpy().astype(np.float64), float(outputs.dataparser_scale))

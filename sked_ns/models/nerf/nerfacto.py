@@ -21,9 +21,7 @@ from sked_ns.method.options import (  # noqa: F401  (re-exported: the public nam
     SkedSettingsWarning,
     taken_from_the_base,
     warn_degenerate_settings,
-)
-from sked_ns.method.options import (
-    without_lpips as _without_lpips,
+    without_lpips,
 )
 from sked_ns.method.preservation import check_beta
 from sked_ns.models.nerf.density_grid import BaseDensityGrid
@@ -66,7 +64,7 @@ class SkedNerfactoModel(SkedMixin, NerfactoModel):
         self.config.num_proposal_samples_per_ray = tuple(
             max(4, round(n * scale)) for n in self.config.num_proposal_samples_per_ray
         )
-        with _without_lpips():
+        with without_lpips():
             super().populate_modules()
         self._setup_sked()
         self._load_base_weights()

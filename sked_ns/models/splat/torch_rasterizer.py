@@ -233,8 +233,8 @@ def _log_alpha_coefficients(means2d, conics, opacities, tile_centres):
     """(B,6,K) coefficients of log(o) - sigma(u, v) as a quadratic in the pixel's (u, v).
 
     sigma = 0.5 a dx^2 + b dx dy + 0.5 c dy^2 with dx = mean - pixel (gsplat's kernel); tile-centred
-    coordinates keep the expanded terms small, so float32 loses little (measured: ~3e-6 of a pixel's
-    colour against the direct formula). A matmul with the pixel features then gives every pixel's value.
+    coordinates keep the expanded terms small, so float32 loses little against the direct formula (the
+    rasterizer's tests compare them). A matmul with the pixel features then gives every pixel's value.
     """
     mx, my = (means2d - tile_centres[:, None, :]).unbind(-1)
     a, b, c = conics.unbind(-1)
