@@ -12,7 +12,7 @@ import yaml
 
 from sked_ns.demo.scenes import sphere as demo_scene
 from sked_ns.demo.splat_base import SplatFit, fit_demo_splat_base, last_fit
-from sked_ns.models.nerf.nerfacto import _without_lpips
+from sked_ns.method.options import without_lpips
 
 FIT = SplatFit(steps=40, num_gaussians=300, warmup_length=20, refine_every=10, sh_degree_interval=20,
                seed_opacity=0.5)  # opaque seeds: a visible gain in 40 steps
@@ -72,7 +72,7 @@ def test_checkpoint_holds_what_the_trainer_saves(splat_run):
     # A splatfacto pipeline built by nerfstudio itself on the same data holds the same keys and shapes.
     config = method_configs["splatfacto"]
     config.pipeline.datamanager.data = splat_run["data"]
-    with _without_lpips():
+    with without_lpips():
         fresh = config.pipeline.setup(device="cpu", test_mode="val").state_dict()
     state = checkpoint["pipeline"]
     assert state.keys() == fresh.keys()
@@ -90,7 +90,7 @@ def test_ns_train_splatfacto_resumes_it(splat_run, tmp_path):
     config = yaml.load((splat_run["run"] / "config.yml").read_text(), Loader=yaml.Loader)
     config.load_dir = splat_run["run"] / "nerfstudio_models"
     config.output_dir = tmp_path  # the trainer's logs go elsewhere: the base run stays as it was
-    with _without_lpips():
+    with without_lpips():
         trainer = config.setup(local_rank=0, world_size=1)
         trainer.setup()
     assert trainer._start_step == FIT.steps
@@ -104,7 +104,7 @@ def test_ns_train_splatfacto_resumes_it(splat_run, tmp_path):
 def test_ns_export_gaussian_splat_reads_it(splat_run, tmp_path):
     from nerfstudio.scripts.exporter import ExportGaussianSplat
 
-    with _without_lpips():
+    with without_lpips():
         ExportGaussianSplat(load_config=splat_run["run"] / "config.yml", output_dir=tmp_path).main()
     raw = (tmp_path / "splat.ply").read_bytes()
     header, body = raw.split(b"end_header\n", 1)
@@ -124,7 +124,7 @@ def test_eval_setup_loads_the_fitted_weights(splat_run):
     from nerfstudio.models.splatfacto import SplatfactoModel
     from nerfstudio.utils.eval_utils import eval_setup
 
-    with _without_lpips():
+    with without_lpips():
         _, pipeline, checkpoint, step = eval_setup(splat_run["run"] / "config.yml", test_mode="inference")
     assert isinstance(pipeline.model, SplatfactoModel) and step == FIT.steps - 1
     for key, value in splat_run["checkpoint"]["pipeline"].items():
