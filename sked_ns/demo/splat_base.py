@@ -174,7 +174,7 @@ def fit_splat_base(data: Path, output_dir: Path, fit: SplatFit = SplatFit(), see
     (Gaussian count, PSNR of the seeds, of the training and of the evaluation-split photos) go to `last_fit`."""
     from nerfstudio.engine.optimizers import Optimizers
 
-    from sked_ns.models.nerf.nerfacto import _without_lpips
+    from sked_ns.method.options import without_lpips
     from sked_ns.sketches.sketch_set import DataparserTransform
 
     if rasterize is None:
@@ -182,7 +182,7 @@ def fit_splat_base(data: Path, output_dir: Path, fit: SplatFit = SplatFit(), see
     torch.manual_seed(seed)
     generator = torch.Generator().manual_seed(seed)
     config = splatfacto_config(Path(data), Path(output_dir), fit, experiment)
-    with _without_lpips():
+    with without_lpips():
         pipeline = config.pipeline.setup(device="cpu", test_mode="val")
     model = pipeline.model
     outputs = pipeline.datamanager.train_dataparser_outputs
