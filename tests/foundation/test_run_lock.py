@@ -201,7 +201,7 @@ def test_sked_eval_leaves_outputs_another_sked_eval_writes(tmp_path, monkeypatch
     other = holding(run / "sked_eval.json", WRITE)
     monkeypatch.setattr(evaluate, "evaluate", lambda *args: pytest.fail("evaluated while another sked-eval writes"))
     # The inputs pass (tests/evaluation/test_evaluate.py checks them): only the outputs' writer is under test here.
-    monkeypatch.setattr(evaluate, "edit_scene", lambda run: types.SimpleNamespace(model_config=None))
+    monkeypatch.setattr(evaluate, "edit_scene", lambda run: types.SimpleNamespace(model_config=None, run_dir=run))
     monkeypatch.setattr(evaluate, "checked_sketches", lambda *args: (None, None))
     monkeypatch.setattr(evaluate, "check_sketch_masks", lambda *args: None)
     monkeypatch.setattr(sys, "argv", ["sked-eval", str(run / "config.yml"), "--device", "cpu"])
