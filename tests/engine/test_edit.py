@@ -514,6 +514,38 @@ def test_ns_render_makes_a_video_of_an_edited_scene(edited, tmp_path):
     assert frames.std() > 5, "not a blank video"
 
 
+def readme_step_4() -> list:
+    """The README's step-4 command lines (look, render, export, score), as printed."""
+    readme = (Path(__file__).resolve().parents[2] / "README.md").read_text()
+    block = readme.split("**4. Look, render, export, score**", 1)[1].split("```bash\n", 1)[1].split("```", 1)[0]
+    return [line.split("#")[0].strip() for line in block.splitlines() if line.strip()]
+
+
+def test_the_readme_s_render_and_export_commands_run_as_printed(edited, tmp_path):
+    """Every word is the README's but the run's path, and a point count: ns-export's default million points take
+    many minutes on a CPU (ns-viewer serves, it is not run here; sked-eval's own tests run it)."""
+    import shlex
+    import shutil as _shutil
+    import subprocess
+    import sys
+
+    lines = [line for line in readme_step_4() if line.startswith(("ns-render", "ns-export"))]
+    assert len(lines) == 2, lines
+    tools = Path(sys.executable).parent
+    for line in lines:
+        words = [str(edited["run"] / "config.yml") if word.endswith("/config.yml") else word
+                 for word in shlex.split(line)]
+        if words[0] == "ns-export":
+            words += ["--num-points", "20000"]
+        if words[0] == "ns-render" and _shutil.which("ffmpeg") is None:
+            pytest.skip("ffmpeg is not installed (the set-up installs it: bash .ci/test)")
+        result = subprocess.run([_shutil.which(words[0], path=str(tools)) or words[0], *words[1:]], cwd=tmp_path,
+                                capture_output=True, text=True, timeout=900)
+        assert result.returncode == 0, line + "\n" + result.stdout[-2000:] + result.stderr[-2000:]
+    assert (tmp_path / "edit.mp4").stat().st_size > 1000
+    assert (tmp_path / "export" / "point_cloud.ply").stat().st_size > 1000
+
+
 def test_sketches_of_another_scene_are_warned_before_training(scene, tmp_path):
     """The authors' cat sketches on the demo sphere meet in empty space: every check of the set alone passes."""
     import warnings
