@@ -34,6 +34,8 @@ def test_ns_train_sked_help():
     result = subprocess.run([ns_train, "sked", "--help"], capture_output=True, text=True, timeout=300)
     assert result.returncode == 0, result.stderr[-2000:]
     assert "sketch-guided" in result.stdout and "--pipeline.model.beta" in result.stdout
+    first = " ".join(result.stdout.split("options", 1)[0].split())  # the description, before the option tables
+    assert all(kind in first for kind in ("nerfacto", "instant-ngp", "splatfacto")), first
 
 
 def test_guidance_is_one_subcommand_per_component():
