@@ -182,9 +182,13 @@ def dataparser_name(dataparser_config) -> str:
 def dataparser_command(base: BaseScene) -> str:
     """The dataparser subcommand and --data the base was trained with, as the user types them."""
     datamanager = base.config.pipeline.datamanager
-    dataparser = datamanager.dataparser
-    data = getattr(datamanager, "data", None) or getattr(dataparser, "data", None) or "<the base data>"
-    return f"`{shlex.join([dataparser_name(dataparser), '--data', str(data)])}`"
+    return f"`{shlex.join([dataparser_name(datamanager.dataparser), '--data', run_data(datamanager)])}`"
+
+
+def run_data(datamanager) -> str:
+    """The --data a run's config names (on the datamanager, or its dataparser's)."""
+    data = getattr(datamanager, "data", None) or getattr(datamanager.dataparser, "data", None)
+    return str(data) if data else "<the base data>"
 
 
 def restart_command(config) -> str:
@@ -197,8 +201,7 @@ def restart_command(config) -> str:
         words += ["--sketches", str(model.sketches)]
     if model.prompt:
         words += ["--prompt", str(model.prompt)]
-    data = getattr(datamanager, "data", None) or getattr(datamanager.dataparser, "data", None) or "<the base data>"
-    words += [dataparser_name(datamanager.dataparser), "--data", str(data)]
+    words += [dataparser_name(datamanager.dataparser), "--data", run_data(datamanager)]
     return shlex.join(words)
 
 

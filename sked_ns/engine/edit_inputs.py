@@ -114,6 +114,7 @@ def check_sketches_in_data(config, with_sketches: bool = True) -> None:
     from sked_ns.engine.base_scene import check_same_frame, dataparser_name, resolve_base
     from sked_ns.engine.datamanager import outputs_transform, sketch_frame_metadata
     from sked_ns.method.edit_box import compute_edit_box
+    from sked_ns.method.frozen_base import check_photo_count, read_model_state
     from sked_ns.sketches.data_frame import model_frame_sketches
 
     datamanager, model = config.pipeline.datamanager, config.pipeline.model
@@ -132,7 +133,9 @@ def check_sketches_in_data(config, with_sketches: bool = True) -> None:
     check_photos_exist(outputs.image_filenames, f"--data {dataparser.data}")
     if model.base_checkpoint is not None:
         check_same_frame(resolve_base(Path(model.base_checkpoint)), outputs_transform(outputs))
-        check_photo_count(Path(model.base_checkpoint), len(outputs.image_filenames))
+        # Refused here, before the run folder exists, as the model's set-up would refuse it after.
+        check_photo_count(read_model_state(Path(model.base_checkpoint)), len(outputs.image_filenames),
+                          Path(model.base_checkpoint))
     if not with_sketches:
         return
     sketch_set = model_frame_sketches(model.sketches, metadata)
@@ -171,17 +174,6 @@ def check_finite_camera_file(data: Path) -> None:
             frame = f" (the frame of {name})" if name else ""
         raise SkedUserError(f"{path}: {field}{frame} is not a finite number (NaN or infinity); fix that value, or "
                             "pass the data the base was trained on.")
-
-
-def check_photo_count(checkpoint: Path, photos: int) -> None:
-    """A base with a per-photo appearance embedding (nerfacto) fits only its own photo count: refused here, before
-    the run folder exists, as the model's set-up would refuse it after."""
-    from sked_ns.method.frozen_base import read_model_state
-
-    embedding = read_model_state(checkpoint).get("field.embedding_appearance.embedding.weight")
-    if embedding is not None and embedding.shape[0] != photos:
-        raise SkedUserError(f"{checkpoint}: the base was trained on {embedding.shape[0]} images but --data has {photos}. "
-                            "Pass the base's own data and dataparser settings.")
 
 
 def check_photos_exist(filenames, where: str) -> None:

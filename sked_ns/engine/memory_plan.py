@@ -27,6 +27,7 @@ from pathlib import Path
 from typing import Dict, List, Optional, Tuple
 
 from sked_ns.errors import SkedUserError, warn
+from sked_ns.models.registry import representation_named, representation_of
 
 GB = 2**30
 
@@ -135,7 +136,6 @@ class StepWork:
 
 
 def step_work(options, datamanager, representation: str) -> StepWork:
-    from sked_ns.models.registry import representation_named
     from sked_ns.sketches.sketch_set import load_sketch_set, sketch_view_at, sketch_view_size
 
     row = representation_named(representation)
@@ -159,8 +159,6 @@ def step_work(options, datamanager, representation: str) -> StepWork:
 def nerf_side(representation: str, work: StepWork, base_bytes: float) -> Tuple[float, float]:
     """(the side's own step peak, what it holds when the guidance runs), in bytes; the gradients of the editable
     weights (base_bytes) come in the backward pass."""
-    from sked_ns.models.registry import representation_named
-
     model = STEP_MODELS[representation]
     if representation_named(representation).renders == "cameras":  # per pixel and per Gaussian: kept, and added
         held = work.rays * model.kept_per_ray + base_bytes * model.kept_per_weight_byte
@@ -227,8 +225,6 @@ def sd_bytes(guidance, device_type: str) -> Tuple[float, float]:
 def resident_bytes(representation: str, base_bytes: float, options) -> float:
     """What the edit holds between steps: its model and optimiser state (splats: the seeds too)."""
     from sked_ns.method.options import is_carving
-    from sked_ns.models.registry import representation_named
-
     seeds_new = representation_named(representation).seeds_new_gaussians and not is_carving(options)
     seeds = options.num_seeds * SEED_BYTES if seeds_new else 0.0
     return STEP_MODELS[representation].resident_per_weight_byte * base_bytes + seeds
@@ -237,7 +233,6 @@ def resident_bytes(representation: str, base_bytes: float, options) -> float:
 def plan_edit(config) -> MemoryPlan:
     """The plan of an edit's config, after resolve_edit filled it in from the base."""
     from sked_ns.method.options import is_carving
-    from sked_ns.models.registry import representation_of
 
     options, machine = config.pipeline.model, config.machine
     representation = representation_of(options).name  # resolve_edit refused any other kind of base
@@ -276,7 +271,6 @@ def options_that_fit(config, free: float) -> List[str]:
     import torch
 
     from sked_ns.method.options import SkedOptions
-    from sked_ns.models.registry import representation_of
 
     tries = []
     if torch.cuda.is_available() and torch.cuda.device_count() > 1 and hasattr(config.pipeline.model.guidance, "device"):

@@ -60,6 +60,14 @@ def read_model_state(checkpoint: Path) -> Dict[str, Tensor]:
     return model_state
 
 
+def check_photo_count(state: Dict[str, Tensor], photos: int, checkpoint: Path) -> None:
+    """A base with a per-photo appearance embedding (nerfacto) fits only its own photo count."""
+    embedding = state.get("field.embedding_appearance.embedding.weight")
+    if embedding is not None and embedding.shape[0] != photos:
+        raise SkedUserError(f"{checkpoint}: the base was trained on {embedding.shape[0]} images but --data has "
+                            f"{photos}. Pass the base's own data and dataparser settings.")
+
+
 def uses_tcnn(state: Dict[str, Tensor], prefix: str = "field.") -> bool:
     """tiny-cuda-nn modules store one flat `params` tensor; the torch ones named layers."""
     return any(key.startswith(prefix) and key.endswith(".params") for key in state)

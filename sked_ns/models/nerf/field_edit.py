@@ -25,7 +25,7 @@ from torch import Tensor
 
 from sked_ns.errors import SkedUserError
 from sked_ns.method.edit import SkedEdit, StepTerms
-from sked_ns.method.frozen_base import read_model_state, uses_tcnn
+from sked_ns.method.frozen_base import check_photo_count, read_model_state, uses_tcnn
 from sked_ns.method.hull_carving import SketchRayOpacity
 from sked_ns.method.losses import new_mass_loss, occupancy_log_probabilities, preservation_loss
 from sked_ns.method.options import (  # noqa: F401  (re-exported: their home was this module)
@@ -99,12 +99,7 @@ class SkedMixin(SkedEdit):
                 + ("Install tinycudann here, or edit on the machine that trained the base." if uses_tcnn(state) else
                    "A new edit takes the base's layout by itself: pass the base's run folder as --load-dir.")
             )
-        embedding = state.get("field.embedding_appearance.embedding.weight")
-        if embedding is not None and embedding.shape[0] != self.num_train_data:
-            raise SkedUserError(
-                f"{checkpoint}: the base was trained on {embedding.shape[0]} images but --data has "
-                f"{self.num_train_data}. Pass the base's own data and dataparser settings."
-            )
+        check_photo_count(state, self.num_train_data, checkpoint)
         wanted = [key for key in ours if key.startswith(self.BASE_PREFIXES)]
         missing = [key for key in wanted if key not in state]
         mismatched = [key for key in wanted if key in state and state[key].shape != ours[key].shape]

@@ -40,6 +40,7 @@ from torch.nn import Parameter
 
 from sked_ns.errors import SkedUserError
 from sked_ns.method.edit import SkedEdit, StepTerms
+from sked_ns.method.edit_box import in_box
 from sked_ns.method.frozen_base import read_model_state
 from sked_ns.method.options import SkedOptions, is_carving, taken_from_the_base
 from sked_ns.method.preservation import check_beta
@@ -138,8 +139,7 @@ class SkedSplatModel(EditableRefinement, SplatPhotoAnchor, SkedEdit, SplatfactoM
     def base_content_near(self, low: np.ndarray, high: np.ndarray) -> bool:
         """A base Gaussian more opaque than a half has its centre in the box."""
         means = self.frozen_gaussians["means"]
-        low_t, high_t = (torch.as_tensor(v, dtype=means.dtype, device=means.device) for v in (low, high))
-        inside = ((means >= low_t) & (means <= high_t)).all(dim=-1)
+        inside = in_box(means, torch.as_tensor(np.stack([low, high]), dtype=means.dtype, device=means.device))
         opaque = torch.sigmoid(self.frozen_gaussians["opacities"]).reshape(-1) > 0.5
         return bool((inside & opaque).any())
 
