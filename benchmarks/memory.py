@@ -331,11 +331,11 @@ def plan_coefficients(result: Dict) -> Dict[str, Dict[str, float]]:
         model = {"kept_per_ray": held / rays, "activation_per_ray": 0.0,
                  "activation_per_sample": max(0.0, step - held - weights) / work["chunk"]}
         model["resident_per_weight_byte"] = resident_per_weight_byte(entry, False)
-        if representation == "instant-ngp":
-            model.update(ngp_ray_coefficients([e for k, e in by_size if k.startswith("instant-ngp@")]))
         unchunked = entry.get("unchunked", {})
         if "step_peak_gb" in unchunked:
             model["activation_per_ray"] = max(0.0, unchunked["step_peak_gb"] * GB - weights) / rays
+        if representation == "instant-ngp":
+            model.update(ngp_ray_coefficients([e for k, e in by_size if k.startswith("instant-ngp@")]))
         coefficients[representation] = model
     sd = result.get("stable_diffusion")
     if sd:
@@ -380,7 +380,14 @@ def ngp_ray_coefficients(sizes: List[Dict]) -> Dict[str, float]:
     random_rays = [entry_work(entry)["rays"] for entry in (small, large)]
     sketch_rays = entry_work(small)["sketch_rays"]
     per_random = (held[1] - held[0]) / (random_rays[1] - random_rays[0])
-    return {"kept_per_ray": per_random, "kept_per_sketch_ray": (held[0] - random_rays[0] * per_random) / sketch_rays}
+    fit = {"kept_per_ray": per_random, "kept_per_sketch_ray": (held[0] - random_rays[0] * per_random) / sketch_rays}
+    if all("step_peak_gb" in entry.get("unchunked", {}) for entry in (small, large)):  # every activation kept
+        weights = small["settings"]["base_weights_gb"] * GB
+        kept = [entry["unchunked"]["step_peak_gb"] * GB - weights for entry in (small, large)]
+        per_random = (kept[1] - kept[0]) / (random_rays[1] - random_rays[0])
+        fit.update(activation_per_ray=per_random,
+                   activation_per_sketch_ray=max(0.0, kept[0] - random_rays[0] * per_random) / sketch_rays)
+    return fit
 
 
 def splat_coefficients(small: Dict, large: Dict) -> Dict[str, float]:

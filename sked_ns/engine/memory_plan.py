@@ -52,6 +52,8 @@ class StepModel:
     kept_per_sketch_ray: Optional[float] = None
     """Per sketch-view (or photo) ray when it differs from a random-view ray's: instant-ngp samples only occupied
     cells, and random views frame the edit while sketch views show the whole scene. None: as a random-view ray."""
+    activation_per_sketch_ray: Optional[float] = None
+    """Without checkpointing, per sketch-view ray where it differs (instant-ngp, as above)."""
     kept_per_weight_byte: float = 0.0
     step_per_weight_byte: float = 0.0
     """Splats: held at the guidance, and added by the rest of the step, per byte of the base's Gaussians (the
@@ -62,10 +64,11 @@ STEP_MODELS: Dict[str, StepModel] = {
     "nerfacto": StepModel(kept_per_ray=21443, activation_per_ray=471768, activation_per_sample=8087, samples_per_ray=400,
                           resident_per_weight_byte=4.502),
     # instant-ngp's samples per ray follow its occupancy grid (the scene); 16 or more fill a chunk at any step's rays.
-    "instant-ngp": StepModel(kept_per_ray=4965, activation_per_ray=92260, activation_per_sample=6385, samples_per_ray=16,
-                             kept_per_sketch_ray=2270, resident_per_weight_byte=4.251),
-    "splatfacto": StepModel(kept_per_ray=77.17, activation_per_ray=17.48, activation_per_sample=0.0, samples_per_ray=1,
-                            kept_per_weight_byte=6.266, step_per_weight_byte=379.6, resident_per_weight_byte=5.498),
+    "instant-ngp": StepModel(kept_per_ray=5115, activation_per_ray=46529, activation_per_sample=7300, samples_per_ray=16,
+                             kept_per_sketch_ray=16266, activation_per_sketch_ray=393534,
+                             resident_per_weight_byte=4.251),
+    "splatfacto": StepModel(kept_per_ray=76.02, activation_per_ray=19.13, activation_per_sample=0.0, samples_per_ray=1,
+                            kept_per_weight_byte=6.274, step_per_weight_byte=379.5, resident_per_weight_byte=5.498),
 }
 
 SEED_BYTES = 59 * 4 * 3
@@ -165,7 +168,8 @@ def nerf_side(representation: str, work: StepWork, base_bytes: float) -> Tuple[f
         return held + work.rays * model.activation_per_ray + base_bytes * (model.step_per_weight_byte + 1), held
     rays = work.rays + work.sketch_rays
     if work.chunk <= 0:  # every activation kept: counted as held from the render on
-        held = rays * model.activation_per_ray * work.sample_scale
+        sketch = model.activation_per_ray if model.activation_per_sketch_ray is None else model.activation_per_sketch_ray
+        held = (work.rays * model.activation_per_ray + work.sketch_rays * sketch) * work.sample_scale
         return held + base_bytes, held
     sketch = model.kept_per_ray if model.kept_per_sketch_ray is None else model.kept_per_sketch_ray
     held = (work.rays * model.kept_per_ray + work.sketch_rays * sketch) * work.sample_scale

@@ -8,6 +8,7 @@ from dataclasses import fields
 
 from nerfstudio.plugins.types import MethodSpecification
 
+from sked_ns.engine.parse_errors import install_for_sked_train
 from sked_ns.engine.presets import PRESET_METHODS
 from sked_ns.session.trainer import SessionTrainerConfig
 
@@ -23,3 +24,5 @@ def with_sessions(method: MethodSpecification) -> MethodSpecification:
 sked_method = with_sessions(PRESET_METHODS["sked"])
 sked_fast = with_sessions(PRESET_METHODS["sked-fast"])
 sked_quality = with_sessions(PRESET_METHODS["sked-quality"])
+
+install_for_sked_train(PRESET_METHODS)  # `ns-train sked*` alone: its mistyped flags as one `error:` line

@@ -134,17 +134,22 @@ def test_importing_the_plugin_changes_only_what_the_development_guide_lists():
         import sked_ns
         from sked_ns.moved import MovedModuleFinder
         finder = [f for f in sys.meta_path if f not in meta]
+        added = sorted(f"{t.__module__}.{t.__name__}" for t in torch.serialization.get_safe_globals()
+                       if repr(t) not in safe)
+        import sked_ns.session.methods  # what ns-train loads for its method list (not ns-train sked here)
+        from tyro._errors import _parse_error_hook
         print(json.dumps({
             "finders": [type(f).__name__ for f in finder],
             "answers_others": [n for n in ("json", "nerfstudio.models.nerfacto", "sked_ns.errors")
                                if MovedModuleFinder().find_spec(n) is not None],
             "hook": sys.excepthook.__module__ + "." + sys.excepthook.__name__,
             "chains_to": sked_ns.errors._previous_excepthook is hook,
-            "added": sorted(f"{t.__module__}.{t.__name__}" for t in torch.serialization.get_safe_globals()
-                            if repr(t) not in safe),
+            "tyro_hook": _parse_error_hook.get() is not None,
+            "added": added,
         }))"""
     result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
     changed = json.loads(result.stdout.strip().splitlines()[-1])
     assert changed["finders"] == ["MovedModuleFinder"] and changed["answers_others"] == []
     assert changed["hook"] == "sked_ns.errors.excepthook" and changed["chains_to"]
+    assert not changed["tyro_hook"], "the one-line parse errors are for ns-train sked alone"
     assert changed["added"] and all(name.startswith("numpy") for name in changed["added"]), changed["added"]
