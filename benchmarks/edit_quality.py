@@ -39,6 +39,7 @@ from pathlib import Path
 from typing import Dict, List, Optional
 
 import numpy as np
+from sole_writer import claim
 
 from sked_ns.atomic import write_text_atomically
 
@@ -425,6 +426,7 @@ def main() -> None:
         print(table(json.loads(args.output.read_text())))
         return
     if args.rescore:
+        claim("edit_quality.py", args.output, args.work)
         rescore(args.output, args.work)
         return
     if args.step_time:
@@ -436,6 +438,7 @@ def main() -> None:
         protocol = (args.protocols or "cpu-100").split(",")[0]
         print(json.dumps(step_time(args.step_time, work, PROTOCOLS[protocol], protocol), indent=2))
         return
+    claim("edit_quality.py", args.output, args.work)
     from sked_ns.demo.scenes.catalogue import write_benchmark
 
     scenes = ["hat"] if args.quick else args.scenes.split(",")

@@ -54,6 +54,7 @@ from sked_ns.atomic import write_text_atomically
 BENCHMARKS = Path(__file__).resolve().parent
 RESULTS = BENCHMARKS / "results"
 sys.path.insert(0, str(BENCHMARKS))
+from sole_writer import claim  # noqa: E402
 
 PAPER_ITERATIONS = 10_000
 PROMPT = "a red chef hat"
@@ -523,6 +524,7 @@ def main() -> None:
     if args.device == "cuda" and not torch.cuda.is_available():
         parser.error("--device cuda, but torch sees no CUDA device here: pass --device cpu")
 
+    claim("gpu_check.py", args.output, args.workdir)
     budget = args.budget_s if args.budget_s is not None else (540.0 if args.device == "cuda" else float("inf"))
     check = Check(args.output, budget)
     check.result.update(

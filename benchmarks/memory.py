@@ -46,6 +46,7 @@ RESULTS = BENCHMARKS / "results"
 sys.path.insert(0, str(BENCHMARKS))
 
 from memory_meter import GB, live_tensor_bytes, metered, part  # noqa: E402
+from sole_writer import claim  # noqa: E402
 
 METHODS = {"nerfacto": "nerfacto", "instant-ngp": "instant-ngp", "splatfacto": "splatfacto"}
 PROMPT = "a red chef hat"
@@ -492,6 +493,7 @@ def main() -> None:
     parser.add_argument("--output", type=Path, default=RESULTS / "memory.json")
     parser.add_argument("--workdir", type=Path, default=None)
     args = parser.parse_args()
+    claim("memory.py", args.output, args.workdir)
     import psutil
 
     args.host_memory_gb = psutil.virtual_memory().total / GB

@@ -25,6 +25,7 @@ from pathlib import Path
 import numpy as np
 import torch
 from scipy.spatial import cKDTree
+from sole_writer import claim
 
 from sked_ns.demo.scenes.sphere import demo_sketch_set
 from sked_ns.method.preservation import SketchDistanceField
@@ -140,6 +141,7 @@ def main() -> None:
     parser.add_argument("--cdist-points", type=int, default=65_536, help="points cdist is timed on, on the CPU")
     parser.add_argument("--output", type=Path, default=Path(__file__).parent / "results" / "preservation_lookup.json")
     args = parser.parse_args()
+    claim("preservation_lookup.py", args.output)
 
     devices = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
     rows = []

@@ -28,6 +28,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from sole_writer import claim
 
 RESULTS = Path(__file__).parent / "results"
 
@@ -148,6 +149,7 @@ def main() -> None:
     parser.add_argument("--output", type=Path, default=RESULTS / "sds_iteration.json")
     parser.add_argument("--workdir", type=Path, default=None)
     args = parser.parse_args()
+    claim("sds_iteration.py", args.output, args.workdir)
 
     from sked_ns.demo.base import build_demo_base
     from sked_ns.demo.scenes import sphere as demo_scene

@@ -28,6 +28,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from sole_writer import claim
 
 from sked_ns.atomic import write_text_atomically
 
@@ -295,6 +296,7 @@ def main() -> None:
         result = run_one(request["run"], Path(request["workdir"]), request["prepared"], device)
         print("RESULT " + json.dumps(result))
         return
+    claim("speed_accuracy.py", args.output, args.workdir)
 
     runs = [run for run in plan(device, args.quick) if run["name"] not in args.skip
             and (not args.only or run["name"] in args.only) and (not args.scene or run["scene"] in args.scene)]

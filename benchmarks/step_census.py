@@ -41,8 +41,8 @@ import torch
 BENCHMARKS = Path(__file__).resolve().parent
 RESULTS = BENCHMARKS / "results"
 sys.path.insert(0, str(BENCHMARKS))
-
 from dispatch_census import DispatchCensus, module_tensors  # noqa: E402
+from sole_writer import claim  # noqa: E402
 
 PHASES = ["random_view_render", "sketch_view_render", "frozen_base", "preservation", "losses", "backward", "optimiser",
           "trainer"]
@@ -343,6 +343,7 @@ def main() -> None:
         stored = json.loads(args.out.read_text())
         print(markdown(stored.get("before", {}), {k: v for k, v in stored.items() if k != "before"}))
         return
+    claim("step_census.py", args.out, args.workdir)
     torch.manual_seed(0)
     os.environ.setdefault("HF_HUB_OFFLINE", "1")
     with (contextlib.nullcontext(str(args.workdir)) if args.workdir else tempfile.TemporaryDirectory()) as folder:

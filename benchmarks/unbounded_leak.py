@@ -34,6 +34,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import edit_quality as eq  # noqa: E402
+from sole_writer import claim  # noqa: E402
 
 CANDIDATES = {
     "default": ("", []),
@@ -213,6 +214,7 @@ def main() -> None:
     parser.add_argument("--candidates", default=",".join(CANDIDATES))
     args = parser.parse_args()
     if args.command == "candidates":
+        claim("unbounded_leak.py", args.output, args.work)
         candidates(args.work, args.output, args.candidates.split(","))
     elif args.run is None:
         raise SystemExit(f"{args.command} needs an edit run (a folder holding config.yml)")

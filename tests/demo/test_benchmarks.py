@@ -329,3 +329,31 @@ def test_memory_benchmark_smoke_run(tmp_path):
     sd = data["stable_diffusion"]
     assert sd["guidance_step_gb"] > 0 and sd["vae_encode_and_backward_gb"] > 0 and sd["unet_cfg_gb"] > 0
     assert "| nerfacto@16 |" in result.stdout
+
+
+@pytest.mark.parametrize("script, flags", [
+    ("step_census.py", ["--out", "{output}", "--workdir", "{work}"]),
+    ("memory.py", ["--output", "{output}", "--workdir", "{work}", "--sd", "none"]),
+    ("edit_quality.py", ["--output", "{output}", "--work", "{work}", "--quick"]),
+])
+@pytest.mark.parametrize("busy", ["output", "work"])
+def test_a_benchmark_refuses_an_output_or_work_folder_another_one_writes(tmp_path, script, flags, busy):
+    """Two benchmarks on one results file or one work folder would interleave their writes: the second is refused
+    in one line before it measures or writes anything."""
+    from lock_helpers import HOLD, WRITE, holding, killed
+
+    output, work = tmp_path / "results.json", tmp_path / "work"
+    output.write_text("{}")
+    child = holding(output, WRITE) if busy == "output" else holding(work, HOLD)
+    try:
+        argv = [flag.format(output=output, work=work) for flag in flags]
+        result = subprocess.run([sys.executable, str(BENCHMARKS / script), *argv], capture_output=True, text=True,
+                                timeout=300)
+    finally:
+        killed(child)
+    assert result.returncode != 0
+    lines = [line for line in result.stderr.splitlines() if line.startswith("error:")]
+    assert len(lines) == 1 and str(output if busy == "output" else work) in lines[0], result.stderr[-2000:]
+    assert "Traceback" not in result.stderr
+    assert output.read_text() == "{}"
+    assert (sorted(p.name for p in work.iterdir()) == [".sked-writer.lock"]) if busy == "work" else not work.exists()
