@@ -50,16 +50,15 @@ def check_edit_inputs(config) -> None:
 
 
 def warn_live_base(checkpoint: Path) -> None:
-    """The edit reads its base's checkpoint whenever it is loaded (the frozen base is not copied into the edit's own):
-    a base still training may replace it (save_only_latest_checkpoint), leaving the edit unable to open."""
+    """A base still training changes after the edit starts: the edit is of its checkpoint as saved now (kept linked in
+    the edit's folder, engine/kept_base.py), not of what the base becomes; almost surely not what was meant."""
     from sked_ns.run_lock import describe, holder, is_this_process
 
     run = checkpoint.parent.parent
     writer = holder(run)
     if writer is not None and not is_this_process(writer):
-        warn(f"--load-dir {run}: that run is still training ({describe(writer)}); when it saves again it may remove "
-             f"{checkpoint.name}, which this edit reads whenever it is loaded. Wait for it to end, or copy the run "
-             "and edit the copy.")
+        warn(f"--load-dir {run}: that run is still training ({describe(writer)}); this edit changes its "
+             f"{checkpoint.name} as saved now, not the scene it is training towards. Wait for it to end to edit that.")
 
 
 CHECKPOINT_MARGIN = 1.25
@@ -114,7 +113,7 @@ def check_sketches_in_data(config, with_sketches: bool = True) -> None:
     from sked_ns.engine.base_scene import check_same_frame, dataparser_name, resolve_base
     from sked_ns.engine.datamanager import outputs_transform, sketch_frame_metadata
     from sked_ns.method.edit_box import compute_edit_box
-    from sked_ns.method.frozen_base import check_photo_count, read_model_state
+    from sked_ns.method.frozen_base import base_weights, check_photo_count, read_model_state
     from sked_ns.sketches.data_frame import model_frame_sketches
 
     datamanager, model = config.pipeline.datamanager, config.pipeline.model
@@ -132,10 +131,10 @@ def check_sketches_in_data(config, with_sketches: bool = True) -> None:
         metadata = sketch_frame_metadata(dataparser, outputs)
     check_photos_exist(outputs.image_filenames, f"--data {dataparser.data}")
     if model.base_checkpoint is not None:
-        check_same_frame(resolve_base(Path(model.base_checkpoint)), outputs_transform(outputs))
+        checkpoint = base_weights(model)
+        check_same_frame(resolve_base(checkpoint), outputs_transform(outputs))
         # Refused here, before the run folder exists, as the model's set-up would refuse it after.
-        check_photo_count(read_model_state(Path(model.base_checkpoint)), len(outputs.image_filenames),
-                          Path(model.base_checkpoint))
+        check_photo_count(read_model_state(checkpoint), len(outputs.image_filenames), checkpoint)
     if not with_sketches:
         return
     sketch_set = model_frame_sketches(model.sketches, metadata)

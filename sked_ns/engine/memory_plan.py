@@ -236,12 +236,13 @@ def resident_bytes(representation: str, base_bytes: float, options) -> float:
 
 def plan_edit(config) -> MemoryPlan:
     """The plan of an edit's config, after resolve_edit filled it in from the base."""
+    from sked_ns.method.frozen_base import base_weights
     from sked_ns.method.options import is_carving
 
     options, machine = config.pipeline.model, config.machine
     representation = representation_of(options).name  # resolve_edit refused any other kind of base
     device = machine.device_type if machine.device_type != "cuda" else "cuda:0"
-    weights = checkpoint_weight_bytes(Path(options.base_checkpoint))
+    weights = checkpoint_weight_bytes(base_weights(options))
     step, held = nerf_side(representation, step_work(options, config.pipeline.datamanager, representation), weights)
     plan = MemoryPlan(device=device, resident=resident_bytes(representation, weights, options), nerf_step=step,
                       held_at_guidance=held)

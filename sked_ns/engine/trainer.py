@@ -30,6 +30,7 @@ from sked_ns.atomic import publish_atomically, write_text_atomically
 from sked_ns.engine.base_scene import BaseScene, checkpoint_step, dataparser_command, resolve_base, restart_command
 from sked_ns.engine.drawn_sketches import draw_sketches_in_viewer, sketches_pending
 from sked_ns.engine.edit_inputs import check_edit_inputs
+from sked_ns.engine.kept_base import keep_base
 from sked_ns.engine.resume import preset_config, resumed_config, typed_settings
 from sked_ns.engine.safe_step import GuardedGradScaler, GuardedOptimizers, StepGuard
 from sked_ns.errors import SkedFileNotFoundError, SkedUserError, check_writable_folder
@@ -64,6 +65,7 @@ class SkedTrainerConfig(TrainerConfig):
         # The run folder's one writer for the run's life, before config.yml or a checkpoint folder is written.
         hold(self.get_base_dir(), "Wait for it to end, or give this edit another --timestamp or --output-dir.")
         check_writable_folder(self.get_checkpoint_dir(), "--output-dir", self.output_dir)
+        keep_base(self.pipeline.model, self.get_base_dir())  # the base run may replace its checkpoint later
         if sketches_pending(self):  # written with the sketch set, once the user draws it in the viewer
             return
         save_run_config(self)

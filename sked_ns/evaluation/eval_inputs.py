@@ -17,6 +17,7 @@ from sked_ns.evaluation.clip_score import DEFAULT_CLIP
 from sked_ns.evaluation.eval_args import eval_parser
 from sked_ns.evaluation.metrics import SSIM_MIN_SIDE
 from sked_ns.evaluation.render import resized_mask
+from sked_ns.method.frozen_base import base_weights
 from sked_ns.sketches.sketch_set import load_sketch_set
 
 LARGE_RENDER = 2048
@@ -104,8 +105,9 @@ def check_run_files(scene, named: str) -> None:
     datamanager = scene.config.pipeline.datamanager
     needed = [("data", getattr(datamanager, "data", None) or getattr(datamanager.dataparser, "data", None))]
     if scene.family == "sked":
-        needed += [("base's checkpoint", scene.model_config.base_checkpoint),
-                   ("sketch set", scene.model_config.sketches)]
+        if scene.model_config.base_checkpoint is not None:
+            base_weights(scene.model_config)  # the base run's, or the edit's own link to it
+        needed += [("sketch set", scene.model_config.sketches)]
     for what, path in needed:
         if path is not None and not Path(path).exists():
             raise SkedFileNotFoundError(f"{named}: its {what} {path} is missing (named in {scene.run_dir / 'config.yml'}, "

@@ -14,7 +14,7 @@ from typing import Dict, List, Optional
 import torch
 from torch import Tensor
 
-from sked_ns.errors import SkedUserError
+from sked_ns.errors import SkedFileNotFoundError, SkedUserError
 
 
 @dataclass
@@ -40,6 +40,21 @@ class FrozenBase:
 
     def modules(self) -> List[torch.nn.Module]:
         return [getattr(self, f.name) for f in fields(self) if getattr(self, f.name) is not None]
+
+
+def base_weights(options) -> Path:
+    """The checkpoint an edit's frozen base is read from: the base run's, or the edit's own link to it (`base_kept`)
+    once the base run no longer holds it."""
+    checkpoint = Path(options.base_checkpoint)
+    kept = getattr(options, "base_kept", None)
+    if checkpoint.exists() or kept is None or not Path(kept).exists():
+        if not checkpoint.exists():
+            raise SkedFileNotFoundError(
+                f"{checkpoint}: the edit's base checkpoint is missing (its base run saved a newer one and removed it, "
+                "or was moved); the edit is its changes to exactly that base, so loading it needs that file. Put "
+                f"it back there{'' if kept is None else f' or at {kept}'}.")
+        return checkpoint
+    return Path(kept)
 
 
 def read_model_state(checkpoint: Path) -> Dict[str, Tensor]:

@@ -46,6 +46,9 @@ class SkedOptions:
     """What should be in the sketched region; none with Stable Diffusion guidance = carve it away."""
     base_checkpoint: Optional[Path] = None
     """The base's step-*.ckpt; filled in from --load-dir."""
+    base_kept: Optional[Path] = None
+    """The edit's own link to that checkpoint (`<edit run>/base/nerfstudio_models/`), read once the base run no
+    longer holds it (a base trained on saves only its latest checkpoint); set when the edit starts."""
     guidance: GuidanceChoice = field(default_factory=StableDiffusionGuidanceConfig)
     """What pulls the sketched region: a subcommand, `pipeline.model.guidance:stable-diffusion` (default) or
     another installed guidance (`pipeline.model.guidance:reference`: renders of a known target scene)."""

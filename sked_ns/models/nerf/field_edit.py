@@ -13,7 +13,6 @@ weight prefixes its base checkpoint must provide.
 from __future__ import annotations
 
 import contextlib
-from pathlib import Path
 from typing import Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
@@ -25,7 +24,7 @@ from torch import Tensor
 
 from sked_ns.errors import SkedUserError
 from sked_ns.method.edit import SkedEdit, StepTerms
-from sked_ns.method.frozen_base import check_photo_count, read_model_state, uses_tcnn
+from sked_ns.method.frozen_base import base_weights, check_photo_count, read_model_state, uses_tcnn
 from sked_ns.method.hull_carving import SketchRayOpacity
 from sked_ns.method.losses import new_mass_loss, occupancy_log_probabilities, preservation_loss
 from sked_ns.method.options import (  # noqa: F401  (re-exported: their home was this module)
@@ -86,10 +85,10 @@ class SkedMixin(SkedEdit):
 
     def _load_base_weights(self) -> None:
         """The editable modules <- the base's weights, after checking they fit."""
-        checkpoint = self.config.base_checkpoint
-        if checkpoint is None:
+        if self.config.base_checkpoint is None:
             raise ValueError("No base checkpoint: run `ns-train sked --load-dir <base run or its nerfstudio_models>`.")
-        state = read_model_state(Path(checkpoint))
+        checkpoint = base_weights(self.config)
+        state = read_model_state(checkpoint)
         ours = self.state_dict()
         if uses_tcnn(state) != uses_tcnn(ours):
             trained, here = ("tiny-cuda-nn", "torch") if uses_tcnn(state) else ("torch", "tiny-cuda-nn")

@@ -24,7 +24,6 @@ import copy
 import math
 import warnings
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Dict, List, Optional, Tuple, Type
 
 import numpy as np
@@ -41,7 +40,7 @@ from torch.nn import Parameter
 from sked_ns.errors import SkedUserError
 from sked_ns.method.edit import SkedEdit, StepTerms
 from sked_ns.method.edit_box import in_box
-from sked_ns.method.frozen_base import read_model_state
+from sked_ns.method.frozen_base import base_weights, read_model_state
 from sked_ns.method.options import SkedOptions, is_carving, taken_from_the_base
 from sked_ns.method.preservation import check_beta
 from sked_ns.models.splat.densify import EditableRefinement
@@ -144,10 +143,10 @@ class SkedSplatModel(EditableRefinement, SplatPhotoAnchor, SkedEdit, SplatfactoM
         return bool((inside & opaque).any())
 
     def _read_base(self) -> Dict[str, Tensor]:
-        checkpoint = self.config.base_checkpoint
-        if checkpoint is None:
+        if self.config.base_checkpoint is None:
             raise ValueError("No base checkpoint: run `ns-train sked --load-dir <splatfacto run>`.")
-        return base_gaussians(read_model_state(Path(checkpoint)), Path(checkpoint), self.config.sh_degree)
+        checkpoint = base_weights(self.config)
+        return base_gaussians(read_model_state(checkpoint), checkpoint, self.config.sh_degree)
 
     def _strategy(self) -> DefaultStrategy:
         """splatfacto's strategy and settings (its populate_modules), the opacity reset as the edit sets it."""
