@@ -15,6 +15,7 @@ from sked_ns.batch.plan import Job, Jobs, Plan, size_warning
 from sked_ns.batch.plan_file import load_plan, output_problem, slurm_problem
 from sked_ns.batch.state import TO_RUN, JobStatus, plan_status, status_table
 from sked_ns.errors import ArgumentParser, SkedUserError, show_warnings_as_lines, warn
+from sked_ns.guide import guide
 
 SHOWN_JOBS = 50
 """Jobs listed one by one when a plan is submitted (or dry-run) at most; the rest are counted."""
@@ -30,7 +31,7 @@ def run_parser() -> argparse.ArgumentParser:
     parser = ArgumentParser(prog="sked-batch", usage=USAGE, description=(
         "A batch of SKED edits from a plan file (YAML or TOML): one `ns-train` run per edit, prompt and seed, each in "
         "its own folder; submitting the plan again skips finished edits, resumes interrupted ones and reruns failed "
-        "ones. See docs/batch.md."))
+        f"ones. See {guide('batch.md')}."))
     parser.add_argument("plan", type=Path, help="the plan file")
     where = parser.add_mutually_exclusive_group(required=True)
     where.add_argument("--local", action="store_true", help="run here: one after another, or one per visible GPU at once")

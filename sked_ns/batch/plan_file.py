@@ -25,6 +25,7 @@ from sked_ns.batch.plan import (
     merged_flags,
 )
 from sked_ns.errors import SkedFileNotFoundError, SkedUserError
+from sked_ns.guide import guide
 
 
 def read_plan_file(path: Path) -> dict:
@@ -32,7 +33,7 @@ def read_plan_file(path: Path) -> dict:
         raise SkedUserError(f"sked-batch {path}: a folder; pass the plan file (YAML or TOML) itself.")
     if not path.is_file():
         raise SkedFileNotFoundError(f"sked-batch {path}: no such plan file (a YAML or TOML file; see "
-                                    "docs/batch.md).")
+                                    f"{guide('batch.md')}).")
     try:
         text = path.read_text()
     except (OSError, UnicodeDecodeError) as error:
@@ -55,7 +56,7 @@ def read_plan_file(path: Path) -> dict:
     except Exception as error:  # the parser's message says where
         raise SkedUserError(f"{path}: cannot read the plan: {error}") from error
     if not isinstance(data, dict):
-        raise SkedUserError(f"{path}: a plan is a mapping with an `edits:` list (see docs/batch.md).")
+        raise SkedUserError(f"{path}: a plan is a mapping with an `edits:` list (see {guide('batch.md')}).")
     return data
 
 
@@ -111,7 +112,7 @@ def load_plan(path: Path, check_paths: bool = True) -> Plan:
     check.unknown("defaults", defaults, [f for f in EDIT_FIELDS if f != "name"])
     edits = data.get("edits")
     if not isinstance(edits, list) or not edits:
-        check.fail("edits", "a list of edits, each with base, data and sketches (see docs/batch.md).")
+        check.fail("edits", f"a list of edits, each with base, data and sketches (see {guide('batch.md')}).")
     slurm = data.get("slurm") or {}
     if not isinstance(slurm, dict):
         check.fail("slurm", f"a mapping of {', '.join(SLURM_FIELDS)}.")

@@ -27,6 +27,7 @@ from pathlib import Path
 from typing import Dict, List, Optional, Tuple
 
 from sked_ns.errors import SkedUserError, warn
+from sked_ns.guide import guide
 from sked_ns.models.registry import representation_named, representation_of
 
 GB = 2**30
@@ -367,7 +368,7 @@ def check_memory(config) -> MemoryPlan:
                  f"; fields in checkpointed chunks of {chosen} samples (an unchunked step would not fit)")
     if line not in _PRINTED:
         _PRINTED.add(line)
-        print(line + " (model: docs/benchmarks.md, Memory)", flush=True)
+        print(line + f" (model: {guide('benchmarks.md')}, Memory)", flush=True)
     free = _free_bytes(plan.device)
     on_cpu = plan.device == "cpu"
     limit = free + _free_swap_bytes() if free is not None and on_cpu else free
@@ -380,7 +381,7 @@ def check_memory(config) -> MemoryPlan:
             + (f"Options that fit: {'; '.join(fitting)}." if fitting else
                "None of the memory options fits alone: lower the settings that grow it (render sizes, seeds), or "
                "use a machine with more memory.")
-            + " (docs/troubleshooting.md, Out of memory)")
+            + f" ({guide('troubleshooting.md')}, Out of memory)")
     if on_cpu and free is not None and plan.peak > free:
         warn(f"this edit needs about {plan.peak / GB:.1f} GB, more than the {free / GB:.1f} GB of memory available "
              "now: it will swap, and run many times slower.")

@@ -18,6 +18,7 @@ from sked_ns.engine.base_scene import check_same_frame, resolve_base
 from sked_ns.engine.datamanager import SkedDataManagerConfig
 from sked_ns.errors import SkedUserError
 from sked_ns.guidance import check_guidance
+from sked_ns.guide import guide
 from sked_ns.method.frozen_base import base_weights
 from sked_ns.method.options import is_carving
 from sked_ns.models.nerf.nerfacto import SkedNerfactoModelConfig
@@ -88,5 +89,5 @@ def refuse_multi_device(world_size: int) -> None:
             "--machine.num-machines). Run with --machine.num-devices 1 --machine.num-machines 1. Two ways scale "
             "instead: a second GPU for the diffusion model (pipeline.model.guidance:stable-diffusion "
             "--pipeline.model.guidance.device cuda:1), and many edits at once, one per GPU, here or as a Slurm job "
-            "array: sked-batch (docs/batch.md)."
+            f"array: sked-batch ({guide('batch.md')})."
         )
