@@ -220,3 +220,26 @@ def taken_from_the_base(config_class: type, base_class: type) -> None:
     for base_field in fields(base_class):
         if base_field.name not in owned and not base_field.name.startswith("_") and base_field.name in hints:
             config_class.__annotations__[base_field.name] = Annotated[hints[base_field.name], tyro.conf.Suppress]
+    # A field both define is SKED's (e.g. the prompt): its help is SKED's, not nerfstudio's first-found docstring.
+    ours = get_type_hints(SkedOptions, include_extras=True)
+    for option in fields(SkedOptions):
+        if option.name in hints and field_help(SkedOptions, option.name):
+            config_class.__annotations__[option.name] = Annotated[ours[option.name],
+                                                                  tyro.conf.arg(help=field_help(SkedOptions, option.name))]
+    if "camera_optimizer" in hints:  # the edit keeps the base's cameras (base_camera_optimizer): none to choose
+        config_class.__annotations__["camera_optimizer"] = Annotated[hints["camera_optimizer"], tyro.conf.Suppress]
+    config_class.__annotations__["base_kept"] = Annotated[ours["base_kept"], tyro.conf.Suppress]  # set at the start
+
+
+def field_help(config_class: type, name: str) -> str:
+    """The docstring under a dataclass field in its class's source (what tyro shows as its help), one line."""
+    import ast
+    import inspect
+    import textwrap
+
+    body = ast.parse(textwrap.dedent(inspect.getsource(config_class))).body[0].body
+    for statement, following in zip(body, body[1:]):
+        if (isinstance(statement, ast.AnnAssign) and getattr(statement.target, "id", None) == name
+                and isinstance(following, ast.Expr) and isinstance(following.value, ast.Constant)):
+            return " ".join(str(following.value.value).split())
+    return ""

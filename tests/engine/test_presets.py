@@ -164,6 +164,12 @@ def test_ns_train_sked_help_says_what_and_why_not_figures(method):
     assert "Required: the scene to edit" in flat and "Leave it out to carve the region away" in flat
     # The base's architecture is copied from its config.yml: typed, it would be overwritten, so it is not offered.
     assert "--pipeline.model.hidden-dim" not in text and "--pipeline.model.num-nerf-samples-per-ray" not in text
+    # SKED's own fields carry SKED's help, not nerfstudio's text for a field of the same name; what it sets is hidden.
+    assert "text to NeRF models" not in flat and "we recommend SO3xR3" not in flat, "nerfstudio's help on SKED's fields"
+    assert "--pipeline.model.camera-optimizer" not in text and "--pipeline.model.base-kept" not in text
+    if method == "sked":  # the help's first lines say what an edit needs
+        head = " ".join(text.split("╭")[0].split())
+        assert all(flag in head for flag in ("--load-dir", "--sketches", "--prompt", "--data")), head
     assert re.findall(HASH, text) == []
     assert [m.group(0) for m in re.finditer(DB_FIGURE, text)] == []
     assert re.findall(r"\bissue \d+|\(#\d+\)", text) == []
