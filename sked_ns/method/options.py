@@ -226,9 +226,11 @@ def taken_from_the_base(config_class: type, base_class: type) -> None:
         if option.name in hints and field_help(SkedOptions, option.name):
             config_class.__annotations__[option.name] = Annotated[ours[option.name],
                                                                   tyro.conf.arg(help=field_help(SkedOptions, option.name))]
-    if "camera_optimizer" in hints:  # the edit keeps the base's cameras (base_camera_optimizer): none to choose
-        config_class.__annotations__["camera_optimizer"] = Annotated[hints["camera_optimizer"], tyro.conf.Suppress]
-    config_class.__annotations__["base_kept"] = Annotated[ours["base_kept"], tyro.conf.Suppress]  # set at the start
+    # The edit keeps the base's cameras (base_camera_optimizer): none to choose; the base's link is set at the start.
+    hidden = {"camera_optimizer": hints, "base_kept": ours}
+    for name, types in hidden.items():
+        if name in types:
+            config_class.__annotations__[name] = Annotated[types[name], tyro.conf.Suppress]
 
 
 def field_help(config_class: type, name: str) -> str:
