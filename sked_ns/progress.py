@@ -5,7 +5,7 @@ from __future__ import annotations
 import sys
 import threading
 import time
-from typing import Optional, TextIO
+from typing import Callable, Optional, TextIO
 
 EVERY_SECONDS = 10.0
 """Work of many small items (a base's fitting steps) says how far it is at most this often."""
@@ -44,3 +44,46 @@ def _duration(seconds: float) -> str:
     if seconds < 5400:
         return f"{seconds / 60:.0f} min"
     return f"{seconds / 3600:.1f} h"
+
+
+HEARTBEAT_SECONDS = 30.0
+"""Work with no countable items (a compiler, one long render) says it is still at it this often."""
+
+
+class Heartbeat:
+    """`with Heartbeat("nerfacc", "compiling its CUDA kernels"):` says what is happening when it starts, then every
+    `every_seconds` how long it has been at it, and how long it took when it ends (a thread, so the work needs no
+    hooks). Lines go to stderr as `command: line`, or to `say` (e.g. a viewer's status text)."""
+
+    def __init__(self, command: str, what: str, stream: Optional[TextIO] = None,
+                 every_seconds: float = HEARTBEAT_SECONDS, expected: str = "",
+                 say: Optional[Callable[[str], None]] = None):
+        self.command, self.what, self.expected = command, what, expected
+        self.stream = stream if stream is not None else sys.stderr
+        self.every_seconds = every_seconds
+        self.say = say
+        self._stop = threading.Event()
+        self._thread: Optional[threading.Thread] = None
+
+    def _say(self, line: str) -> None:
+        if self.say is not None:
+            self.say(line)
+        else:
+            print(f"{self.command}: {line}", file=self.stream, flush=True)
+
+    def _beat(self) -> None:
+        while not self._stop.wait(self.every_seconds):
+            self._say(f"still {self.what} ({_duration(time.monotonic() - self.started)})")
+
+    def __enter__(self) -> "Heartbeat":
+        self.started = time.monotonic()
+        self._say(f"{self.what}{' (' + self.expected + ')' if self.expected else ''}...")
+        self._thread = threading.Thread(target=self._beat, name=f"{self.command} heartbeat", daemon=True)
+        self._thread.start()
+        return self
+
+    def __exit__(self, kind, error, traceback) -> None:
+        self._stop.set()
+        self._thread.join()
+        if kind is None:
+            self._say(f"done {self.what} ({_duration(time.monotonic() - self.started)})")

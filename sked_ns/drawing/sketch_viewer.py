@@ -36,10 +36,13 @@ from sked_ns.drawing.sketching import (
 )
 from sked_ns.engine.viewer import add_frustum, show_sketch_views
 from sked_ns.errors import ArgumentParser, SkedFileExistsError, SkedUserError, reading
+from sked_ns.progress import Heartbeat
 from sked_ns.sketches.sketch_set import SKETCHES_JSON, DataparserTransform
 
 VIEW_WIDTH = 512
 """Width of a captured view; the height follows the browser window's aspect."""
+CAPTURE_BEAT_SECONDS = 2.0
+"""The panel says how long the captured view has been rendering this often."""
 CPU_PREVIEW_WIDTH = 160
 """On a CPU the captured view's picture is rendered this wide and upsampled: it is only the
 backdrop to click on (the mask keeps VIEW_WIDTH), and it costs about 1/10 of the rays."""
@@ -150,8 +153,9 @@ class SketchPanel:
             self._say("Still rendering the captured view...")
             return
         try:
-            self._say("Rendering the captured view...")
-            self.session.capture(client_camera(self.server))
+            with Heartbeat("sked-sketch", "rendering the captured view", every_seconds=CAPTURE_BEAT_SECONDS,
+                           say=lambda line: self._say(line[:1].upper() + line[1:])):
+                self.session.capture(client_camera(self.server))
         finally:
             self._capturing.release()
         self.server.scene.on_pointer_event("click")(self._on_click)

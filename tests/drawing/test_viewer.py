@@ -200,3 +200,30 @@ def test_sked_sketch_refuses_an_existing_set_and_a_bad_port_before_loading_anyth
     assert (tmp_path / "done" / "sketches.json").read_text() == "{}"
     with pytest.raises(SkedUserError, match="argument --port: '70000' is not a port number"):
         entrypoint(["no-base", "--out", str(tmp_path / "new"), "--port", "70000"])
+
+
+def test_a_slow_capture_says_how_long_it_has_been_rendering(scene, sketch_viewer, monkeypatch):
+    import time
+
+    import sked_ns.drawing.sketch_viewer as sketch_viewer_module
+    from sked_ns.demo.scenes import sphere as demo_scene
+    from sked_ns.sketches.cameras import PinholeCamera
+
+    panel = sketch_viewer["panel"]
+    camera = PinholeCamera.from_view(demo_scene.SCENES["hat"].sketch_set(size=16).views[0])
+    monkeypatch.setattr(sketch_viewer_module, "client_camera", lambda server, width=512: camera)
+    monkeypatch.setattr(sketch_viewer_module, "CAPTURE_BEAT_SECONDS", 0.05)
+    monkeypatch.setattr(panel.session, "render", lambda c: (time.sleep(0.4), np.zeros((c.height, c.width, 3)))[1])
+    said, say = [], panel._say
+    monkeypatch.setattr(panel, "_say", lambda line: (said.append(line), say(line)))
+    previous = panel.session.pending
+    try:
+        panel.capture()
+    finally:
+        panel.session.pending = previous
+        panel.server.scene.remove_pointer_callback()
+        panel._set_drawing(False)
+    assert said[0] == "Rendering the captured view..."
+    assert any(line.startswith("Still rendering the captured view (") for line in said[1:-2]), said
+    assert said[-1].startswith("Click the points"), said
+

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import io
 
+import pytest
+
 from sked_ns.progress import Progress
 
 
@@ -35,3 +37,19 @@ def test_many_small_items_say_how_far_at_most_every_so_often_and_at_the_end(monk
         progress.step()
     assert [line.split(" (")[0] for line in stream.getvalue().splitlines()] == [
         "demo base: fitting step 1/6", "demo base: fitting step 4/6", "demo base: fitting step 6/6"]
+
+
+def test_a_heartbeat_says_what_it_is_doing_how_long_and_when_it_is_done():
+    import time
+
+    from sked_ns.progress import Heartbeat
+
+    said = []
+    with Heartbeat("nerfacc", "building its kernels", every_seconds=0.05, expected="once", say=said.append):
+        time.sleep(0.3)
+    assert said[0] == "building its kernels (once)..." and said[-1].startswith("done building its kernels (")
+    assert len(said) >= 4 and all(line.startswith("still building its kernels (") for line in said[1:-1])
+    stream = io.StringIO()
+    with pytest.raises(RuntimeError), Heartbeat("x", "failing", stream=stream, every_seconds=10):
+        raise RuntimeError("stop")
+    assert stream.getvalue() == "x: failing...\n"  # no "done" for work that failed

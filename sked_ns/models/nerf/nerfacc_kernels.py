@@ -35,6 +35,8 @@ from typing import Dict, List, Optional
 
 import torch
 
+from sked_ns.progress import Heartbeat
+
 NAME = "nerfacc_csrc_sked"
 PATCHES: Dict[str, str] = {"cub::Equality()": "::cuda::std::equal_to<>()"}
 """Source replacements for CCCL 3 (CUDA 13); equal_to<> is what cub::Equality was."""
@@ -202,8 +204,8 @@ def build_patched() -> types.ModuleType:
     root = Path(_get_build_directory(name, verbose=False)).parent
     arguments = build_arguments(patched_tree(source, root))
     os.environ.setdefault("MAX_JOBS", str(os.cpu_count() or 4))
-    print("nerfacc: loading its CUDA kernels (compiled once, a few minutes; cached afterwards)", flush=True)
-    return load(name=name, **arguments)
+    with Heartbeat("nerfacc", "building its CUDA kernels", expected="once, a few minutes; cached afterwards"):
+        return load(name=name, **arguments)
 
 
 def ensure_kernels() -> str:
@@ -240,10 +242,13 @@ def compile_only(build_directory: Path) -> Path:
     os.environ.setdefault("TORCH_CUDA_ARCH_LIST", COMPILE_ONLY_ARCH)
     os.environ.setdefault("MAX_JOBS", str(os.cpu_count() or 4))
     name = f"{NAME}_{source_digest(source)}"
-    _write_ninja_file_and_build_library(
-        name=name, **build_arguments(tree), extra_sycl_cflags=[], build_directory=str(build_directory),
-        verbose=False, with_cuda=True, with_sycl=False,
-    )
+    jobs = os.environ["MAX_JOBS"]
+    with Heartbeat("nerfacc_kernels", f"compiling and linking the patched kernels ({jobs} parallel jobs)",
+                   expected="several minutes without a cache"):
+        _write_ninja_file_and_build_library(
+            name=name, **build_arguments(tree), extra_sycl_cflags=[], build_directory=str(build_directory),
+            verbose=False, with_cuda=True, with_sycl=False,
+        )
     return build_directory / f"{name}.so"
 
 
