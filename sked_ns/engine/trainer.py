@@ -65,7 +65,6 @@ class SkedTrainerConfig(TrainerConfig):
         # The run folder's one writer for the run's life, before config.yml or a checkpoint folder is written.
         hold(self.get_base_dir(), "Wait for it to end, or give this edit another --timestamp or --output-dir.")
         check_writable_folder(self.get_checkpoint_dir(), "--output-dir", self.output_dir)
-        keep_base(self.pipeline.model, self.get_base_dir())  # the base run may replace its checkpoint later
         if sketches_pending(self):  # written with the sketch set, once the user draws it in the viewer
             return
         save_run_config(self)
@@ -77,6 +76,7 @@ def save_run_config(config: TrainerConfig) -> None:
     ns-render, ns-export and ns-viewer (nerfstudio's eval_setup) load `load_step` from the run's own checkpoints,
     and a resume's load_dir / load_step name the interrupted run's: they describe this start, not the run."""
     path = config.get_base_dir() / "config.yml"
+    keep_base(config.pipeline.model, config.get_base_dir())  # the base run may replace its checkpoint later
     run = copy.copy(config)  # the trainer still resumes from the in-memory config
     run.load_dir = run.load_step = run.load_checkpoint = None
     CONSOLE.log(f"Saving config to: {path}")
