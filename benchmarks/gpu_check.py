@@ -273,9 +273,9 @@ def run_edit(check: Check, key: str, base: Path, work: Path, sd: Path, args) -> 
 
 
 def sked_preset_cadence(name: str) -> int:
-    from sked_ns.engine.presets import sked_method
+    from sked_ns.engine.presets import edit_preset
 
-    return int(getattr(sked_method.config, name))
+    return int(getattr(edit_preset(), name))
 
 
 def sd_floor(check: Check, trainer, args, edit: str) -> dict:

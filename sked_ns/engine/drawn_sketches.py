@@ -26,12 +26,9 @@ def sketches_pending(config) -> bool:
             and not (Path(sketches) / SKETCHES_JSON).exists())
 
 
-def draw_sketches_in_viewer(config) -> None:
-    """No --sketches: the user draws them in this run's viewer (a session); without the viewer, or with a trainer that
-    opens no session (an edit built from Python), it is refused."""
-    if not (config.is_viewer_enabled() and getattr(config._target, "opens_sessions", False)):
-        raise SkedUserError(
-            f"--vis {config.vis}: no sketches to edit with. Pass --sketches <folder with sketches.json> (draw one with "
-            "sked-sketch), or leave --sketches out with the viewer on (--vis viewer, the default) to draw them in "
-            "this edit's viewer.")
-    config.pipeline.model.sketches = session_sketches(config)
+def no_sketches(config) -> SkedUserError:
+    """A new edit without --sketches that cannot draw them in its viewer (the viewer off, or built from Python)."""
+    return SkedUserError(
+        f"--vis {config.vis}: no sketches to edit with. Pass --sketches <folder with sketches.json> (draw one with "
+        "sked-sketch), or leave --sketches out with the viewer on (--vis viewer, the default) to draw them in "
+        "this edit's viewer.")

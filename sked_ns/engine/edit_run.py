@@ -6,7 +6,7 @@ import copy
 from pathlib import Path
 from typing import Optional
 
-from sked_ns.engine.presets import sked_method
+from sked_ns.engine.presets import edit_preset
 from sked_ns.engine.trainer import SkedTrainerConfig
 from sked_ns.guidance import guidance_config
 from sked_ns.run_lock import release
@@ -24,7 +24,7 @@ def edit_config(
     if dataparser is None:
         dataparser = copy.deepcopy(resolve_base(Path(base)).config.pipeline.datamanager.dataparser)
     dataparser.data = Path(data)
-    config: SkedTrainerConfig = copy.deepcopy(sked_method.config)
+    config: SkedTrainerConfig = edit_preset()
     config.output_dir = Path(output_dir)
     config.experiment_name = "edit"
     config.load_dir = Path(base)
@@ -49,7 +49,7 @@ def edit_config(
 def resume_config(run: Path, output_dir: Optional[Path] = None, *, iterations: Optional[int] = None) -> SkedTrainerConfig:
     """The `ns-train sked --load-dir RUN [--output-dir OUT] [--max-num-iterations N]` config: the preset's
     defaults but for what is typed; resolving it takes everything else from the saved edit."""
-    config: SkedTrainerConfig = copy.deepcopy(sked_method.config)
+    config: SkedTrainerConfig = edit_preset()
     config.load_dir = Path(run)
     if output_dir is not None:
         config.output_dir = Path(output_dir)

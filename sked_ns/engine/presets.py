@@ -10,7 +10,7 @@ from __future__ import annotations
 import copy
 from dataclasses import dataclass, fields
 from importlib import resources
-from typing import Dict, Tuple
+from typing import Dict, Tuple, Type
 
 import yaml
 from nerfstudio.configs.base_config import ViewerConfig
@@ -61,12 +61,14 @@ def read_preset(name: str, folder=None) -> Dict:
     return preset
 
 
-def sked_trainer_config(preset: Dict, method_name: str) -> SkedTrainerConfig:
+def sked_trainer_config(preset: Dict, method_name: str,
+                        config_class: Type[SkedTrainerConfig] = SkedTrainerConfig) -> SkedTrainerConfig:
+    """The preset as a trainer config of `config_class` (the session layer registers its subclass)."""
     iterations = int(preset["iterations"])
     model = SkedNerfactoModelConfig()
     for key, value in preset.get("model", {}).items():
         setattr(model, key, copy.deepcopy(value))
-    return SkedTrainerConfig(
+    return config_class(
         method_name=method_name,
         steps_per_eval_batch=0,
         steps_per_eval_image=1000,
@@ -88,12 +90,12 @@ def sked_trainer_config(preset: Dict, method_name: str) -> SkedTrainerConfig:
     )
 
 
-def method_from_preset(name: str) -> MethodSpecification:
+def method_from_preset(name: str, config_class: Type[SkedTrainerConfig] = SkedTrainerConfig) -> MethodSpecification:
+    """`ns-train <name>`'s registry entry: the preset's config and description."""
     preset = read_preset(name)
-    return MethodSpecification(config=sked_trainer_config(preset, name), description=preset["description"])
+    return MethodSpecification(config=sked_trainer_config(preset, name, config_class), description=preset["description"])
 
 
-sked_method = method_from_preset("sked")
-sked_fast = method_from_preset("sked-fast")
-sked_quality = method_from_preset("sked-quality")
-PRESET_METHODS = {"sked": sked_method, "sked-fast": sked_fast, "sked-quality": sked_quality}
+def edit_preset(name: str = "sked") -> SkedTrainerConfig:
+    """A fresh config of the preset for an edit built from Python (no viewer session: its sketches are given)."""
+    return sked_trainer_config(read_preset(name), name)

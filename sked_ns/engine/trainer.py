@@ -18,7 +18,7 @@ import sys
 import warnings
 from dataclasses import dataclass, field, fields
 from pathlib import Path
-from typing import ClassVar, Optional, Type
+from typing import Optional, Type
 
 import torch
 import yaml
@@ -28,7 +28,7 @@ from nerfstudio.utils.rich_utils import CONSOLE
 
 from sked_ns.atomic import publish_atomically, write_text_atomically
 from sked_ns.engine.base_scene import BaseScene, checkpoint_step, dataparser_command, resolve_base, restart_command
-from sked_ns.engine.drawn_sketches import draw_sketches_in_viewer, sketches_pending
+from sked_ns.engine.drawn_sketches import no_sketches, sketches_pending
 from sked_ns.engine.edit_inputs import check_edit_inputs
 from sked_ns.engine.kept_base import keep_base
 from sked_ns.engine.resume import preset_config, resumed_config, typed_settings
@@ -54,6 +54,10 @@ class SkedTrainerConfig(TrainerConfig):
     progressive: bool = False
     """With --load-dir on an earlier SKED run: edit its result again instead of resuming it."""
 
+    def sketches_to_draw(self) -> None:
+        """A new edit without --sketches: refused here; the session layer's config opens them in the viewer."""
+        raise no_sketches(self)
+
     def print_to_terminal(self) -> None:
         resolve_edit(self)  # a user error before nerfstudio's config dump, not after it
         super().print_to_terminal()
@@ -78,6 +82,7 @@ def save_run_config(config: TrainerConfig) -> None:
     path = config.get_base_dir() / "config.yml"
     keep_base(config.pipeline.model, config.get_base_dir())  # the base run may replace its checkpoint later
     run = copy.copy(config)  # the trainer still resumes from the in-memory config
+    vars(run).pop(SETTLED, None)
     run.load_dir = run.load_step = run.load_checkpoint = None
     CONSOLE.log(f"Saving config to: {path}")
     try:
@@ -87,8 +92,28 @@ def save_run_config(config: TrainerConfig) -> None:
                             "or pass another --output-dir.") from error
 
 
+SETTLED = "_sked_settled_from"
+"""The config's attribute recording what it was settled from (not a field: never saved in config.yml)."""
+
+
+def settled_from(config: SkedTrainerConfig) -> tuple:
+    """What an edit's config is resolved from: the scene and checkpoint it loads, and the aliases typed with it."""
+    return (config.load_dir, config.load_step, config.load_checkpoint, config.progressive, config.sketches,
+            config.prompt, config.pipeline.model.base_checkpoint)
+
+
 def resolve_edit(config: SkedTrainerConfig) -> None:
-    """Fill the model config from --load-dir and the aliases; safe to call twice."""
+    """Settle the edit's config once: nerfstudio's first hook on it (print_to_terminal under ns-train, save_config
+    from Python) does the work, later ones (save_config, the trainers' setup) find it done. A config copied and
+    pointed at another scene (a session's next round) is settled again."""
+    if getattr(config, SETTLED, None) == settled_from(config):
+        return
+    _resolve_edit(config)
+    object.__setattr__(config, SETTLED, settled_from(config))
+
+
+def _resolve_edit(config: SkedTrainerConfig) -> None:
+    """Fill the model config from --load-dir and the aliases, and check everything the edit will read."""
     check_options(config.pipeline.model, config.pipeline.datamanager)  # bad values refused before anything is written
     check_run_settings(config)
     model = config.pipeline.model
@@ -112,8 +137,8 @@ def resolve_edit(config: SkedTrainerConfig) -> None:
             resume_edit(config, base)
         else:
             start_edit(config, base)
-            if config.pipeline.model.sketches is None:  # a new edit without --sketches: drawn in its viewer
-                draw_sketches_in_viewer(config)
+            if config.pipeline.model.sketches is None:  # a new edit without --sketches
+                config.sketches_to_draw()
         check_data(config, base)
     check_edit_inputs(config)  # everything the edit will read, before anything is written
     # Learning rates decay to 0.1x by the end of this edit (docs/method.md, Optimisation), however long --max-num-iterations makes it.
@@ -163,6 +188,7 @@ def start_edit(config: SkedTrainerConfig, base: BaseScene) -> None:
     """A new edit of `base`: the model shaped like it, starting at step 0 from its weights."""
     model = config.pipeline.model = edit_model_config(config.pipeline.model, base.model_config)
     model.base_checkpoint = base.checkpoint
+    model.base_kept = None  # kept when config.yml is written; a copied config (the next round) names another base
     if "implementation" in {f.name for f in fields(model)}:  # NeRF fields: the base's layout, not its config, decides
         model.implementation = base_implementation(base.checkpoint)
     optimizers = representation_of(base.model_config).edit_optimizers(config.max_num_iterations, model)
@@ -210,8 +236,6 @@ def edit_model_config(model, base_model_config):
 
 class SkedTrainer(Trainer):
     config: SkedTrainerConfig
-    opens_sessions: ClassVar[bool] = False
-    """Whether a run without --sketches may draw them in its viewer (sked_ns.session's trainer does)."""
 
     def __init__(self, config: SkedTrainerConfig, local_rank: int = 0, world_size: int = 1) -> None:
         super().__init__(config, local_rank=local_rank, world_size=world_size)

@@ -3,9 +3,9 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import ClassVar, Optional, Type
+from typing import Optional, Type
 
-from sked_ns.engine.drawn_sketches import sketches_pending
+from sked_ns.engine.drawn_sketches import no_sketches, session_sketches, sketches_pending
 from sked_ns.engine.trainer import SkedTrainer, SkedTrainerConfig, resolve_edit
 from sked_ns.session.rounds import EditSession, abandon_unstarted
 
@@ -16,12 +16,17 @@ class SessionTrainerConfig(SkedTrainerConfig):
 
     _target: Type = field(default_factory=lambda: SessionTrainer)
 
+    def sketches_to_draw(self) -> None:
+        """No --sketches: drawn in this run's viewer (a session), saved in its run folder."""
+        if not self.is_viewer_enabled():
+            raise no_sketches(self)
+        self.pipeline.model.sketches = session_sketches(self)
+
 
 class SessionTrainer(SkedTrainer):
     """SkedTrainer; when the sketches are to be drawn, it opens the session, trains its first round and then each
     round Edit again asks for (the later rounds' trainers are SessionTrainers of the same session)."""
 
-    opens_sessions: ClassVar[bool] = True
     session: Optional[EditSession] = None
     """The session this trainer's round belongs to; None for an edit given --sketches."""
 

@@ -7,6 +7,7 @@ whose target is that scene with a hat, so the outcome is known.
 
 from __future__ import annotations
 
+import copy
 import math
 import os
 import shutil
@@ -640,3 +641,40 @@ def test_a_base_that_cannot_be_linked_is_said_and_read_where_it_is(scene, tmp_pa
     with pytest.warns(UserWarning, match=rf"{checkpoint.name}: the edit reads .*another file system"):
         kept_base.keep_base(model, tmp_path / "run")
     assert model.base_kept is None and not (tmp_path / "run" / "base").exists()
+
+
+def test_the_edit_s_config_is_settled_once_through_nerfstudio_s_hooks(scene, tmp_path, monkeypatch):
+    """ns-train's order (print_to_terminal, save_config, the trainer's setup) resolves the edit once; a copy pointed
+    at another scene (a session's next round) resolves again; config.yml holds no trace of it."""
+    from sked_ns.engine import trainer as trainer_module
+
+    calls = []
+    resolve = trainer_module._resolve_edit
+    monkeypatch.setattr(trainer_module, "_resolve_edit", lambda config: (calls.append(config), resolve(config)))
+    config = edit_config(scene["base"], scene["data"], scene["sketches"], tmp_path, iterations=2,
+                         guidance_resolution=16, silhouette_resolution=16)
+    config.set_timestamp()
+    config.print_to_terminal()
+    config.save_config()
+    trainer = config.setup(local_rank=0, world_size=1)
+    trainer.setup()
+    assert len(calls) == 1
+    assert trainer_module.SETTLED not in (config.get_base_dir() / "config.yml").read_text()
+    again = copy.deepcopy(config)
+    again.load_dir, again.load_step = scene["base"], None
+    resolve_edit(again)
+    assert len(calls) == 2
+
+
+def test_an_edit_built_from_python_without_sketches_is_refused_and_a_session_draws_them(scene, tmp_path):
+    from sked_ns.session.trainer import SessionTrainerConfig
+
+    config = edit_config(scene["base"], scene["data"], scene["sketches"], tmp_path, iterations=2)
+    config.sketches = config.pipeline.model.sketches = None
+    with pytest.raises(SkedUserError, match="--vis tensorboard: no sketches to edit with"):
+        resolve_edit(config)
+    session = SessionTrainerConfig(**{name: getattr(config, name) for name in vars(config) if not name.startswith("_")})
+    session.vis = "viewer"
+    session.set_timestamp()
+    session.sketches_to_draw()
+    assert session.pipeline.model.sketches == session.get_base_dir() / "sketches"

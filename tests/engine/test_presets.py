@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import copy
 import shutil
 import subprocess
 import sys
@@ -130,9 +129,9 @@ def test_ablation_switches_drop_their_losses(scene, tmp_path, ablation, dropped)
 
 def test_learning_rate_decay_spans_the_edit_the_user_asked_for(scene, tmp_path):
     """`ns-train sked --max-num-iterations 300`: the rates still reach 0.1x at the end, not at step 10,000."""
-    from sked_ns.engine.presets import sked_method
+    from sked_ns.engine.presets import edit_preset
 
-    config = copy.deepcopy(sked_method.config)
+    config = edit_preset()
     config.load_dir, config.sketches, config.max_num_iterations = scene["base"], scene["sketches"], 300
     config.data, config.machine.device_type = scene["data"], "cpu"
     resolve_edit(config)

@@ -11,13 +11,13 @@ import pytest
 
 from sked_ns.engine import parse_errors
 from sked_ns.engine.parse_errors import close_flags, flags_of, sked_train_method
-from sked_ns.engine.presets import PRESET_METHODS
+from sked_ns.session.methods import SESSION_METHODS
 
 tyro_errors = pytest.importorskip("tyro._errors", reason="a tyro without its parse-error hook keeps its box")
 
 
 def test_only_an_ns_train_of_a_sked_method_is_recognised():
-    methods = list(PRESET_METHODS)
+    methods = list(SESSION_METHODS)
     assert sked_train_method(["/x/bin/ns-train", "sked", "--help"], methods) == "sked"
     assert sked_train_method(["/x/nerfstudio/scripts/train.py", "sked-fast"], methods) == "sked-fast"
     assert sked_train_method(["/x/bin/ns-train", "nerfacto", "--data", "sked"], methods) is None
@@ -27,7 +27,7 @@ def test_only_an_ns_train_of_a_sked_method_is_recognised():
 
 @pytest.fixture(scope="module")
 def flags():
-    return sorted(set(flags_of(PRESET_METHODS["sked"].config)))
+    return sorted(set(flags_of(SESSION_METHODS["sked"].config)))
 
 
 def test_the_flags_are_tyros_names_with_the_dataparser_after_its_subcommand(flags):
@@ -50,7 +50,7 @@ def test_a_mistyped_flag_is_answered_with_the_flags_it_meant(flags, typed, meant
 
 
 def test_each_kind_of_parse_error_is_one_line_and_unknown_kinds_fall_through(flags, capsys):
-    hook = parse_errors.one_line_hook("ns-train sked", PRESET_METHODS["sked"].config)
+    hook = parse_errors.one_line_hook("ns-train sked", SESSION_METHODS["sked"].config)
     with pytest.raises(SystemExit) as stopped:
         hook(tyro_errors.UnrecognizedArgs(prog="ns-train sked", tokens=["--promt", "x"]))
     assert stopped.value.code == 2

@@ -9,8 +9,8 @@ from pathlib import Path
 
 import pytest
 
-from sked_ns.engine.presets import sked_method
 from sked_ns.models.nerf.nerfacto import SkedNerfactoModelConfig
+from sked_ns.session.methods import sked_method
 
 
 def test_entry_point_registers_sked():

@@ -298,9 +298,9 @@ def test_the_vae_decoder_never_moves_and_the_text_encoder_is_freed(tiny_sd, monk
 def test_guidance_device_parses_from_the_command_line():
     import tyro
 
-    from sked_ns.engine.presets import sked_method
+    from sked_ns.engine.presets import edit_preset
 
-    config = sked_method.config
+    config = edit_preset()
     parsed = tyro.cli(type(config), default=config, args=["pipeline.model.guidance:stable-diffusion",
                                                           "--pipeline.model.guidance.device", "cuda:1"])
     assert parsed.pipeline.model.guidance.device == "cuda:1"

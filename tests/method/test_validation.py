@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import copy
 import dataclasses
 import warnings
 
@@ -85,9 +84,9 @@ def test_a_photo_threshold_that_silences_the_anchor_is_warned():
 
 
 def test_resolve_edit_refuses_before_anything_is_written(tmp_path):
-    from sked_ns.engine.presets import sked_method
+    from sked_ns.engine.presets import edit_preset
 
-    config = copy.deepcopy(sked_method.config)
+    config = edit_preset()
     config.output_dir = tmp_path
     config.pipeline.model = SkedNerfactoModelConfig(lambda_pres=-5.0)
     with pytest.raises(SkedOptionError, match="--pipeline.model.lambda-pres -5.0"):
