@@ -37,7 +37,7 @@ from torch import Tensor
 
 from sked_ns.errors import SkedFileNotFoundError, SkedUserError
 from sked_ns.evaluation.metrics import SSIM_MIN_SIDE, psnr_outside, ssim_outside
-from sked_ns.sketches.cameras import cameras_of
+from sked_ns.sketches.cameras import PinholeCamera, cameras_of
 from sked_ns.sketches.data_frame import IMPLIED_COLMAP_TRANSFORM, data_frame_transform, file_to_model  # noqa: F401 (re-exported)
 from sked_ns.sketches.data_frame import matrix_field as _matrix
 from sked_ns.sketches.data_frame import number_field as _number
@@ -106,17 +106,10 @@ DISTORTION_FIELDS = ("k1", "k2", "k3", "k4", "p1", "p2")
 
 
 @dataclass
-class FrameCamera:
-    """One frame of a camera file as nerfstudio's dataparsers read it: the file's frame, the file's resolution."""
+class FrameCamera(PinholeCamera):
+    """One frame of a camera file as nerfstudio's dataparsers read it: a PinholeCamera in the file's frame (3x4,
+    OpenGL axes) at the file's resolution, with its lens."""
 
-    camera_to_world: np.ndarray
-    """3x4, OpenGL axes, in the camera file's frame."""
-    fl_x: float
-    fl_y: float
-    cx: float
-    cy: float
-    width: int
-    height: int
     camera_model: str = "OPENCV"
     """A nerfstudio `camera_model` (CAMERA_MODEL_TO_TYPE): perspective, fisheye, equirectangular, ..."""
     distortion: np.ndarray = field(default_factory=lambda: np.zeros(6))

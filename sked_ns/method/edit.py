@@ -287,12 +287,21 @@ class SkedEdit:
         return explained
 
     # ---- evaluation -------------------------------------------------------------------------
+    def eval_ground_truth(self, outputs, batch) -> Tensor:
+        """The photo as the model renders one: on its background."""
+        return self.renderer_rgb.blend_background(batch["image"].to(self.device))
+
+    def eval_counts(self) -> Dict[str, float]:
+        """The model's size at evaluation, logged beside PSNR (a NeRF's does not change)."""
+        return {}
+
     def get_image_metrics_and_images(self, outputs, batch):
         """nerfstudio's evaluation images and PSNR/SSIM, without LPIPS."""
-        gt = self.renderer_rgb.blend_background(batch["image"].to(self.device))
+        gt = self.eval_ground_truth(outputs, batch)
         predicted = outputs["rgb"]
         gt_chw, predicted_chw = gt.permute(2, 0, 1)[None], predicted.permute(2, 0, 1)[None]
-        metrics = {"psnr": float(self.psnr(gt_chw, predicted_chw).item()), "ssim": float(self.ssim(gt_chw, predicted_chw))}
+        metrics = {"psnr": float(self.psnr(gt_chw, predicted_chw).item()), "ssim": float(self.ssim(gt_chw, predicted_chw)),
+                   **self.eval_counts()}
         images = {"img": torch.cat([gt, predicted], dim=1), "accumulation": outputs["accumulation"]}
         if "preservation_weight" in outputs:
             images["preservation_weight"] = outputs["preservation_weight"]

@@ -308,7 +308,7 @@ def test_photo_anchor_removes_a_floater_in_front_of_a_training_photo(splat_scene
         model = pipeline.model
         photo = pipeline.datamanager.photo_view(0)
         assert photo["image"].shape[:2] == (int(photo["camera"].height), int(photo["camera"].width))
-        safe = model._photo_pixels_kept(photo["camera"], 0)
+        safe = model.photo_anchor.pixels_kept(photo["camera"], 0, (model.config.beta, model.config.photo_threshold))
         assert 0.2 < float(safe.float().mean()) < 1.0  # rays through the sketched region are left to the edit
         # A floater: an opaque editable Gaussian half-way along a safe pixel's ray.
         rays = photo["camera"].generate_rays(camera_indices=0, keep_shape=True)

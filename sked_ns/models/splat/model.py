@@ -42,6 +42,7 @@ from sked_ns.method.edit import SkedEdit, StepTerms
 from sked_ns.method.edit_box import in_box
 from sked_ns.method.frozen_base import base_weights, read_model_state
 from sked_ns.method.options import SkedOptions, is_carving, taken_from_the_base
+from sked_ns.method.photo_anchor import rays_away_from_edit
 from sked_ns.method.preservation import check_beta
 from sked_ns.models.splat.densify import EditableRefinement
 from sked_ns.models.splat.gaussians import (
@@ -90,7 +91,7 @@ class SkedSplatModelConfig(SplatfactoModelConfig, SkedOptions):
 
 taken_from_the_base(SkedSplatModelConfig, SplatfactoModelConfig)  # the base's architecture: not typeable
 
-class SkedSplatModel(EditableRefinement, SplatPhotoAnchor, SkedEdit, SplatfactoModel):
+class SkedSplatModel(SkedEdit, SplatfactoModel):
     """Kept Gaussians (buffers) + editable Gaussians (splatfacto's parameters) + frozen base + sketches + guidance."""
 
     config: SkedSplatModelConfig
@@ -123,16 +124,16 @@ class SkedSplatModel(EditableRefinement, SplatPhotoAnchor, SkedEdit, SplatfactoM
         self.gauss_params = torch.nn.ParameterDict({name: Parameter(value.clone()) for name, value in editable.items()})
         from_base = torch.cat([torch.ones(int((~kept).sum()), dtype=torch.bool),
                                torch.zeros(len(seeds["means"]), dtype=torch.bool)])
-        # L_pres's targets, one per editable Gaussian; follow it through densification (_follow_densification).
+        # L_pres's targets, one per editable Gaussian; follow it through densification (densify.follow_densification).
         self.reference = GaussianSet({**{name: value.clone() for name, value in editable.items()}, "from_base": from_base})
         # Plain attribute: never optimised or saved. Kept first, as the edit renders them, so that an unchanged edit
         # renders bit-identically to it (the compositor's sums depend on the order of equal-depth Gaussians' blocks).
         self.frozen_gaussians: Dict[str, Tensor] = {name: torch.cat([base[name][kept], base[name][~kept]])
                                                     for name in GAUSSIAN_PARAMS}
-        self.strategy = self._strategy()
-        self.strategy_state = self.strategy.initialize_state(scene_scale=1.0)
-        self._step_infos: List[Dict] = []
-        self._photo_pixels: Dict[Tuple, Tensor] = {}
+        self.refinement = EditableRefinement(self._strategy())
+        self._step_infos: List[Dict] = []  # the step's training renders, for the refinement after the backward
+        self.photo_anchor = SplatPhotoAnchor(self._render_edit, self.composite_with_background, self._rays_away_from_edit,
+                                             self.check_photos_once, lambda: self._photos_checked)
 
     @torch.no_grad()
     def base_content_near(self, low: np.ndarray, high: np.ndarray) -> bool:
@@ -266,7 +267,7 @@ class SkedSplatModel(EditableRefinement, SplatPhotoAnchor, SkedEdit, SplatfactoM
             render, alpha, info = rasterize(
                 gaussians["means"], gaussians["quats"], torch.exp(gaussians["scales"]),
                 torch.sigmoid(gaussians["opacities"]).squeeze(-1), colours, viewmat(camera_to_world), intrinsics,
-                width, height, render_mode="RGB+ED" if depth else "RGB", absgrad=self.strategy.absgrad,
+                width, height, render_mode="RGB+ED" if depth else "RGB", absgrad=self.refinement.strategy.absgrad,
                 rasterize_mode=self.config.rasterize_mode,
             )
         render, alpha = render[0], alpha[0]
@@ -328,6 +329,18 @@ class SkedSplatModel(EditableRefinement, SplatPhotoAnchor, SkedEdit, SplatfactoM
         """The editable Gaussians only (splatfacto's six groups); the kept ones are buffers."""
         return {name: [self.gauss_params[name]] for name in GAUSSIAN_PARAMS}
 
+    def _rays_away_from_edit(self, origins: Tensor, directions: Tensor, nears: Tensor, fars: Tensor) -> Tensor:
+        """Which rays never come near the editable region (the photo anchor's pixels)."""
+        rays = [value.to(self.device) for value in (origins, directions, nears, fars)]
+        return rays_away_from_edit(*rays, self.editable_box(), lambda p: self.preservation_weight(p)[..., 0],
+                                   self.config.photo_threshold)
+
+    def step_post_backward(self, step: int) -> None:
+        """splatfacto's densification on the editable Gaussians, from this step's training renders."""
+        infos, self._step_infos = self._step_infos, []
+        self.refinement.step_post_backward(step, self.gauss_params, self.optimizers, infos, len(self.kept["means"]),
+                                           self.reference)
+
     def get_training_callbacks(self, training_callback_attributes: TrainingCallbackAttributes) -> List[TrainingCallback]:
         """SKED's step, and splatfacto's two: the step and optimizers before, densification after each iteration."""
         return [
@@ -347,7 +360,7 @@ class SkedSplatModel(EditableRefinement, SplatPhotoAnchor, SkedEdit, SplatfactoM
         for prefix, holder in (("kept.", self.kept), ("reference.", self.reference)):
             holder.assign({name: torch.zeros_like(state_dict[prefix + name], device=value.device)
                            for name, value in holder.tensors().items() if prefix + name in state_dict})
-        self.strategy_state = self.strategy.initialize_state(scene_scale=1.0)
+        self.refinement.reset()
         self._step_infos = []
         return torch.nn.Module.load_state_dict(self, state_dict, strict=strict, **kwargs)
 
@@ -388,7 +401,8 @@ class SkedSplatModel(EditableRefinement, SplatPhotoAnchor, SkedEdit, SplatfactoM
         photo = data.get("photo_view")
         photo_metrics: Dict[str, Tensor] = {}
         if photo is not None and config.effective_lambda_photo > 0:
-            terms.photo = self._photo_anchor(photo, background, photo_metrics)
+            terms.photo = self.photo_anchor.loss(photo, background, photo_metrics,
+                                                 (config.beta, config.photo_threshold))
         losses, metrics = self.objective(terms, carving)
         metrics.update(photo_metrics)
         metrics["mean_preservation_weight"] = weight.sum() / reference["from_base"].sum().clamp_min(1)
@@ -411,16 +425,11 @@ class SkedSplatModel(EditableRefinement, SplatPhotoAnchor, SkedEdit, SplatfactoM
             outputs["background"] = background.expand(height, width, 3)
         return self.steer_outputs(outputs, lambda: self.render_base(camera, background))
 
-    def get_image_metrics_and_images(self, outputs, batch):
-        """splatfacto's evaluation images and PSNR/SSIM, without LPIPS."""
+    def eval_ground_truth(self, outputs, batch) -> Tensor:
+        """The photo on the background the evaluation render used (splatfacto's)."""
         background = outputs["background"]
         background = background[0, 0] if background.dim() == 3 else background
-        gt = self.composite_with_background(self.get_gt_img(batch["image"]), background)
-        predicted = outputs["rgb"]
-        gt_chw, predicted_chw = gt.permute(2, 0, 1)[None], predicted.permute(2, 0, 1)[None]
-        metrics = {"psnr": float(self.psnr(gt_chw, predicted_chw).item()),
-                   "ssim": float(self.ssim(gt_chw, predicted_chw)), "gaussian_count": float(self.num_points)}
-        images = {"img": torch.cat([gt, predicted], dim=1), "accumulation": outputs["accumulation"]}
-        if "preservation_weight" in outputs:
-            images["preservation_weight"] = outputs["preservation_weight"]
-        return metrics, images
+        return self.composite_with_background(self.get_gt_img(batch["image"]), background)
+
+    def eval_counts(self) -> Dict[str, float]:
+        return {"gaussian_count": float(self.num_points)}
