@@ -27,12 +27,16 @@ def wait_for(condition, what: str, timeout: float = 300.0, panel=None):
 def session_config(scene, output_dir: Path, sd_folder: Path, iterations: int = 4):
     """`ns-train sked --load-dir BASE --max-num-iterations N <dataparser> --data DATA`, the viewer on a free port and
     Stable Diffusion the tiny one in `sd_folder`."""
-    from sked_ns.engine.edit_run import edit_config
-    from sked_ns.session.trainer import SessionTrainer
+    from dataclasses import fields
 
-    config = edit_config(scene["base"], scene["data"], scene["sketches"], output_dir, iterations=iterations,
-                         guidance="stable-diffusion", guidance_resolution=16, silhouette_resolution=16)
-    config._target = SessionTrainer  # what `ns-train sked` runs (sked_ns.session.methods)
+    from sked_ns.engine.edit_run import edit_config
+    from sked_ns.session.trainer import SessionTrainerConfig
+
+    edit = edit_config(scene["base"], scene["data"], scene["sketches"], output_dir, iterations=iterations,
+                       guidance="stable-diffusion", guidance_resolution=16, silhouette_resolution=16)
+    # What `ns-train sked` builds (sked_ns.session.methods): the session layer's config class and trainer.
+    config = SessionTrainerConfig(**{item.name: getattr(edit, item.name) for item in fields(edit)
+                                     if item.init and item.name != "_target"})
     config.sketches = None
     config.pipeline.model.guidance.model = str(sd_folder)
     config.pipeline.model.guidance.image_size = 32

@@ -127,6 +127,12 @@ def resolve_base(load_dir: Path, step: Optional[int] = None, flag: str = "--load
         if not models_dir.is_dir():
             raise SkedFileNotFoundError(f"{models_dir}: missing; the run at {run_dir} has no saved checkpoints.")
         checkpoint = _latest_checkpoint(models_dir, step)
+    return read_scene(run_dir, checkpoint)
+
+
+def read_scene(run_dir: Path, checkpoint: Path) -> BaseScene:
+    """The run at `run_dir` (its config.yml read and checked) with `checkpoint` as the weights it is loaded from."""
+    config_path = run_dir / "config.yml"
     try:
         config = yaml.load(config_path.read_text(), Loader=yaml.Loader)
         method, model_config = config.method_name, config.pipeline.model
@@ -222,3 +228,14 @@ def check_same_frame(base: BaseScene, here: DataparserTransform) -> None:
         f"translation {np.round(here.transform[:, 3], 4).tolist()}). Pass the base's dataparser and its settings: "
         f"{dataparser_command(base)} (see {base.run_dir / 'config.yml'}, pipeline.datamanager.dataparser)."
     )
+
+
+def edited_base(model) -> BaseScene:
+    """An edit's base: its run (config, data frame) and the checkpoint the edit reads, the edit's own link to it once
+    the base run saved a newer one (method/frozen_base.base_weights)."""
+    from sked_ns.method.frozen_base import base_weights
+
+    checkpoint, weights = Path(model.base_checkpoint), base_weights(model)
+    if weights == checkpoint:
+        return resolve_base(checkpoint)
+    return read_scene(checkpoint.parent.parent, weights)

@@ -110,10 +110,10 @@ def check_devices(machine) -> None:
 def check_sketches_in_data(config, with_sketches: bool = True) -> None:
     """The data as its dataparser reads it, and the sketch set in the frame it gives: placed as the model places it
     (model_frame_sketches) and boxed inside its scene box (compute_edit_box), and the base trained in that frame."""
-    from sked_ns.engine.base_scene import check_same_frame, dataparser_name, resolve_base
+    from sked_ns.engine.base_scene import check_same_frame, dataparser_name, edited_base
     from sked_ns.engine.datamanager import outputs_transform, sketch_frame_metadata
     from sked_ns.method.edit_box import compute_edit_box
-    from sked_ns.method.frozen_base import base_weights, check_photo_count, read_model_state
+    from sked_ns.method.frozen_base import check_photo_count, read_model_state
     from sked_ns.sketches.data_frame import model_frame_sketches
 
     datamanager, model = config.pipeline.datamanager, config.pipeline.model
@@ -131,8 +131,9 @@ def check_sketches_in_data(config, with_sketches: bool = True) -> None:
         metadata = sketch_frame_metadata(dataparser, outputs)
     check_photos_exist(outputs.image_filenames, f"--data {dataparser.data}")
     if model.base_checkpoint is not None:
-        checkpoint = base_weights(model)
-        check_same_frame(resolve_base(checkpoint), outputs_transform(outputs))
+        base = edited_base(model)
+        checkpoint = base.checkpoint
+        check_same_frame(base, outputs_transform(outputs))
         # Refused here, before the run folder exists, as the model's set-up would refuse it after.
         check_photo_count(read_model_state(checkpoint), len(outputs.image_filenames), checkpoint)
     if not with_sketches:

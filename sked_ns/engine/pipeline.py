@@ -14,12 +14,11 @@ from typing import Literal, Optional, Type
 from nerfstudio.pipelines.base_pipeline import VanillaPipeline, VanillaPipelineConfig
 from torch.cuda.amp.grad_scaler import GradScaler
 
-from sked_ns.engine.base_scene import check_same_frame, resolve_base
+from sked_ns.engine.base_scene import check_same_frame, edited_base
 from sked_ns.engine.datamanager import SkedDataManagerConfig
 from sked_ns.errors import SkedUserError
 from sked_ns.guidance import check_guidance
 from sked_ns.guide import guide
-from sked_ns.method.frozen_base import base_weights
 from sked_ns.method.options import is_carving
 from sked_ns.models.nerf.nerfacto import SkedNerfactoModelConfig
 from sked_ns.models.registry import renders_cameras
@@ -52,7 +51,7 @@ class SkedPipeline(VanillaPipeline):
         super().__init__(config, device, test_mode=test_mode, world_size=world_size, local_rank=local_rank,
                          grad_scaler=grad_scaler)
         if config.model.base_checkpoint is not None:  # after the model's own checks (image count is clearer)
-            check_same_frame(resolve_base(base_weights(config.model)), self.datamanager.dataparser_transform)
+            check_same_frame(edited_base(config.model), self.datamanager.dataparser_transform)
         # The same sketch set, loaded once, for the sketch views and random views.
         self.datamanager.attach_sketches(
             self.model.sketch_set, self.model.edit_box, config.model.silhouette_resolution, config.model.guidance_resolution

@@ -41,7 +41,6 @@ from sked_ns.evaluation.eval_inputs import (
 )
 from sked_ns.evaluation.metrics import intersection_over_sketch, psnr_outside, ssim_outside
 from sked_ns.evaluation.render import load_pipeline, render_at, render_base_at, render_camera, resized_mask
-from sked_ns.method.frozen_base import base_weights
 from sked_ns.progress import Progress
 from sked_ns.run_lock import describe, holder, writing
 from sked_ns.sketches.cameras import cameras_of
@@ -135,7 +134,7 @@ def evaluate(edit_run: Path, base_run: Optional[Path] = None, sketches: Optional
     own_base = base_run is None
     if not own_base:
         check_base(Path(base_run), edit, device)
-    base_run = Path(base_run) if base_run else base_weights(model_config).parent.parent
+    base_run = Path(base_run) if base_run else Path(model_config.base_checkpoint).parent.parent
     sketches, sketch_set = checked_sketches(sketches, model_config)
     check_sketch_masks(sketch_set, resolution)
     edit_pipeline = load_pipeline(edit.run_dir, device)

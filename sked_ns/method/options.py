@@ -47,7 +47,7 @@ class SkedOptions:
     base_checkpoint: Optional[Path] = None
     """The base's step-*.ckpt; filled in from --load-dir."""
     base_kept: Optional[Path] = None
-    """The edit's own link to that checkpoint (`<edit run>/base/nerfstudio_models/`), read once the base run no
+    """The edit's own link to that checkpoint (`<edit run>/base/`), read once the base run no
     longer holds it (a base trained on saves only its latest checkpoint); set when the edit starts."""
     guidance: GuidanceChoice = field(default_factory=StableDiffusionGuidanceConfig)
     """What pulls the sketched region: a subcommand, `pipeline.model.guidance:stable-diffusion` (default) or
