@@ -117,15 +117,31 @@ def python_command() -> List[str]:
     return [sys.executable, "-m", "sked_ns.batch"]
 
 
+SBATCH_SPECIAL = frozenset(" \t\"'\\#")
+"""What sbatch's reading of an #SBATCH line treats specially: whitespace splits, quotes group, a backslash escapes
+the next character, an unescaped # starts a comment."""
+
+
+def sbatch_word(argument: str) -> str:
+    """One argument as sbatch reads it back from an #SBATCH line: in double quotes when it holds a special character,
+    with `"` and `\\` escaped inside (Slurm before 23 ends an argument at a backslash-escaped space, never in quotes)."""
+    if "\n" in argument or "\r" in argument:
+        raise SkedUserError(f"{argument!r}: an #SBATCH line cannot hold a line break; rename the folder or value.")
+    if not SBATCH_SPECIAL.intersection(argument):
+        return argument
+    return '"' + argument.replace("\\", "\\\\").replace('"', '\\"') + '"'
+
+
 def sbatch_script(plan: Plan, jobs: List[Job], options: SlurmOptions) -> str:
     """A job array, task i -> the i-th job to run; output of each task in <output>/slurm/<array>_<task>.out."""
     logs = plan.output / "slurm"
     array = f"0-{len(jobs) - 1}" + (f"%{options.max_parallel}" if options.max_parallel else "")
     # The plan's path in JSON's escapes: a newline in it must not end the comment line.
     lines = ["#!/bin/bash", f"# sked-batch {json.dumps(str(plan.path))}: {len(jobs)} edit(s), written {now()}",
-             f"#SBATCH --job-name=sked-batch-{plan.name}", f"#SBATCH --array={array}",
-             f"#SBATCH --output={logs}/%A_%a.out"]
-    lines += [f"#SBATCH {directive}" for directive in options.directives()]
+             f"#SBATCH {sbatch_word(f'--job-name=sked-batch-{plan.name}')}", f"#SBATCH --array={array}",
+             # %% is Slurm's literal % in a file name pattern; %A_%a the array's job and task.
+             f"#SBATCH {sbatch_word('--output=' + str(logs).replace('%', '%%') + '/%A_%a.out')}"]
+    lines += [f"#SBATCH {sbatch_word(directive)}" for directive in options.directives()]
     lines += ["", "set -euo pipefail", "# SLURM_ARRAY_TASK_ID -> the job it runs (the plan's jobs that were not done)",
               "JOBS=(" + " ".join(shlex.quote(job.name) for job in jobs) + ")",
               "exec " + " ".join(shlex.quote(t) for t in python_command() + ["task", str(plan.path)])

@@ -34,13 +34,15 @@ from sked_ns.drawing.sketching import (
     sketch_set_coverage,
     write_canvases,
 )
-from sked_ns.engine.viewer import add_frustum, show_sketch_views
+from sked_ns.engine.viewer import add_frustum, frame_on_connect, show_sketch_views, step_back
 from sked_ns.errors import ArgumentParser, SkedFileExistsError, SkedUserError, reading
 from sked_ns.progress import Heartbeat
 from sked_ns.sketches.sketch_set import SKETCHES_JSON, DataparserTransform
 
 VIEW_WIDTH = 512
 """Width of a captured view; the height follows the browser window's aspect."""
+SKETCH_PANEL_ORDER = -1.0
+"""The panel's place in the viewer's sidebar: above nerfstudio's controls (viser numbers those from 1)."""
 CAPTURE_BEAT_SECONDS = 2.0
 """The panel says how long the captured view has been rendering this often."""
 CPU_PREVIEW_WIDTH = 160
@@ -58,6 +60,11 @@ def _load(run: Path, device: str, flag: str = "sked-sketch", data: Optional[Path
                  "it was trained on where its config.yml says."):
         pipeline = load_pipeline(run, device, flag=flag, data=data)
     return run, pipeline, sketch_frame(pipeline)
+
+
+def training_poses(pipeline) -> np.ndarray:
+    """The training cameras' (N, 3, 4) poses in the model frame (what the viewer shows)."""
+    return pipeline.datamanager.train_dataset.cameras.camera_to_worlds.detach().cpu().numpy()
 
 
 def sketch_frame(pipeline) -> DataparserTransform:
@@ -126,7 +133,7 @@ class SketchPanel:
         self.on_views_changed: Callable[[], None] = lambda: None
         self._capturing = threading.Lock()  # repeated presses while a view renders are ignored
         gui = server.gui
-        with gui.add_folder("SKED sketch"):
+        with gui.add_folder("SKED sketch", order=SKETCH_PANEL_ORDER):
             self.status = gui.add_markdown("Move to a view of the region, then **Capture view**.")
             self.coverage = gui.add_markdown("")  # does the set pin the part down (hull_check)?
             self.capture_button = gui.add_button("Capture view")
@@ -190,6 +197,7 @@ class SketchPanel:
         self.server.scene.remove_pointer_callback()
         self._set_drawing(False)
         self._show_views()
+        step_back(self.server)  # the camera is where the view was taken: its frustum would fill the screen
         box = self.session.edit_box()
         self._say(f"{len(self.session.views)} view(s)." + (
             f" Edit box {np.round(box.min, 2).tolist()} .. {np.round(box.max, 2).tolist()}." if box else
@@ -297,6 +305,7 @@ def start_viewer(run: Path, out: Path, port: Optional[int] = None, device: str =
     viewer.init_scene(train_dataset=pipeline.datamanager.train_dataset, train_state="completed",
                       eval_dataset=pipeline.datamanager.eval_dataset)
     viewer.update_scene(step=0)
+    frame_on_connect(viewer.viser_server, training_poses(pipeline))
     preview_width = CPU_PREVIEW_WIDTH if device == "cpu" else None
     session = SketchSession(renderer(pipeline, lock, preview_width), transform, pipeline.model.scene_box.aabb.numpy())
     return viewer, SketchPanel(viewer.viser_server, session, out)

@@ -2,9 +2,59 @@
 
 from __future__ import annotations
 
+from typing import Optional, Tuple
+
 import numpy as np
 
 from sked_ns.sketches.cameras import PinholeCamera
+
+AXES_CONDITION = 1e6
+"""Above this condition number the cameras' optical axes are near parallel (a forward-facing capture): no one point
+they all look at."""
+STEP_BACK = 1.6
+"""After a view is added the browser's camera, still where the view was taken (its frustum filling the view), moves
+back to this many times its distance from what it looks at."""
+
+
+def scene_framing(cameras_to_world: np.ndarray) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(position, look-at point, up), model frame, that show the scene as its photos do: the training camera nearest
+    the cameras' mean position, looking at the point nearest every camera's optical axis (the origin, where
+    nerfstudio's dataparsers centre a scene, when the axes are near parallel), up as the cameras' mean up."""
+    poses = np.asarray(cameras_to_world, dtype=np.float64).reshape(-1, 3, 4)
+    positions, forwards = poses[:, :, 3], -poses[:, :, 2]  # OpenGL axes: a camera looks down its -z
+    position = positions[np.argmin(np.linalg.norm(positions - positions.mean(axis=0), axis=1))]
+    projectors = np.eye(3)[None] - forwards[:, :, None] * forwards[:, None, :]  # onto each axis' normal plane
+    system, target = projectors.sum(axis=0), np.einsum("nij,nj->i", projectors, positions)
+    look_at = np.linalg.solve(system, target) if np.linalg.cond(system) < AXES_CONDITION else np.zeros(3)
+    up = poses[:, :, 1].mean(axis=0)
+    up = up / np.linalg.norm(up) if np.linalg.norm(up) > 1e-6 else np.array([0.0, 0.0, 1.0])
+    return position, look_at, up
+
+
+def frame_on_connect(server, cameras_to_world: np.ndarray, look_at: Optional[np.ndarray] = None) -> None:
+    """Each browser that connects starts at `scene_framing`'s view (looking at `look_at` when given, e.g. the edit
+    box's centre), not at viser's default pose, which can sit inside the scene or show it at the view's edge."""
+    from nerfstudio.viewer.viewer import VISER_NERFSTUDIO_SCALE_RATIO
+
+    position, centre, up = scene_framing(cameras_to_world)
+    centre = centre if look_at is None else np.asarray(look_at, dtype=np.float64)
+
+    def frame(client) -> None:
+        with client.atomic():
+            client.camera.up_direction = tuple(up)
+            client.camera.position = tuple(position * VISER_NERFSTUDIO_SCALE_RATIO)
+            client.camera.look_at = tuple(centre * VISER_NERFSTUDIO_SCALE_RATIO)
+
+    server.on_client_connect(frame)
+
+
+def step_back(server, factor: float = STEP_BACK) -> None:
+    """Every browser's camera moves back from what it looks at, in the direction it looks from."""
+    for client in server.get_clients().values():
+        look_at, position = np.array(client.camera.look_at), np.array(client.camera.position)
+        with client.atomic():
+            client.camera.position = tuple(look_at + (position - look_at) * factor)
+            client.camera.look_at = tuple(look_at)  # viser moves it with the position: put it back
 
 
 def add_frustum(server, name: str, camera: PinholeCamera, image: np.ndarray, colour):

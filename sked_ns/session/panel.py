@@ -48,6 +48,9 @@ def round_label(number: int) -> str:
     return f"round {number}"
 
 
+SESSION_PANEL_ORDER = -2.0
+"""The session's folder first in the viewer's sidebar, the sketch tools under it, nerfstudio's controls after."""
+
 class SessionPanel:
     """Prompt, Start edit, Edit again, the round to start from and the list of rounds, above the sketch tools."""
 
@@ -61,7 +64,7 @@ class SessionPanel:
         self.sketching = True  # a set is being drawn (before round 1, after Edit again); else a round trains
         self._lock = threading.Lock()  # one press handled at a time
         gui = server.gui
-        with gui.add_folder("SKED session"):
+        with gui.add_folder("SKED session", order=SESSION_PANEL_ORDER):
             self.status = gui.add_markdown("")
             self.prompt_text = gui.add_text("Prompt", initial_value=prompt or "")
             self.prompt_note = gui.add_markdown(prompt_note(prompt, guidance))

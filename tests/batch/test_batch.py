@@ -538,7 +538,8 @@ def slurm(tmp_path_factory):
 
 
 def test_slurm_array_runs_the_plan_and_resubmitting_resumes_a_cancelled_edit(scene, slurm, tmp_path):
-    path = write_plan(tmp_path, scene, [
+    # A folder name sbatch's #SBATCH reading would split or cut at a comment unless escaped.
+    path = write_plan(tmp_path / "plans #1 with space", scene, [
         {"name": "short", "seed": 0, "flags": "--max-num-iterations 3 --steps-per-save 2"},
         {"name": "long", "seed": 0, "flags": "--max-num-iterations 40 --steps-per-save 3"},  # long enough to cancel
     ])
@@ -617,3 +618,52 @@ def test_a_bad_command_line_is_one_error_line_without_argparse_s_usage(argv, mes
     with pytest.raises(SkedUserError, match=message + r".*\(see sked-batch.*--help\)\."):
         main(argv)
     assert "usage:" not in capsys.readouterr().err
+
+
+def sbatch_arguments(line: str) -> list:
+    """A plain reading of an #SBATCH line as Slurm 22.05's sbatch reads it (src/sbatch/opt.c, get_argument): whitespace
+    splits, '...' and "..." group, a backslash escapes the next character but an escaped space still ends the
+    argument (fixed in later Slurm), an unescaped # outside quotes ends the line."""
+    text, arguments, position = line[len("#SBATCH"):], [], 0
+    while True:
+        while position < len(text) and text[position].isspace():
+            position += 1
+        if position >= len(text):
+            return arguments
+        argument, quote, escaped = [], None, False
+        while position < len(text) and (quote is not None or not text[position].isspace()):
+            character = text[position]
+            if escaped:
+                escaped = False
+            elif character == "\\":
+                escaped, position = True, position + 1
+                continue
+            elif quote is not None:
+                if character == quote:
+                    quote, position = None, position + 1
+                    continue
+            elif character in "\"'":
+                quote, position = character, position + 1
+                continue
+            elif character == "#":
+                return arguments + (["".join(argument)] if argument else [])
+            argument.append(character)
+            position += 1
+        arguments.append("".join(argument))
+
+
+@pytest.mark.parametrize("value", ["plain", "with space", "a#b # c", 'say "hi"', "it's", "back\\slash", "tab\there",
+                                   "%A_%a"])
+def test_an_sbatch_line_gives_back_each_argument_whole(value):
+    from sked_ns.batch.runners import sbatch_word
+
+    assert sbatch_arguments(f"#SBATCH {sbatch_word('--comment=' + value)} --array=0-1") == [f"--comment={value}",
+                                                                                           "--array=0-1"]
+
+
+def test_an_sbatch_line_refuses_a_line_break():
+    from sked_ns.batch.runners import sbatch_word
+
+    with pytest.raises(SkedUserError, match="cannot hold a line break"):
+        sbatch_word("--output=/a\nb")
+

@@ -80,6 +80,7 @@ def test_sketch_panel_in_a_real_browser(scene, tmp_path):
         with _page(chromium, port, 1100, 750) as page:
             page.get_by_role("button", name="Capture view").wait_for(timeout=120_000)
             try:
+                _opens_framed_and_moves_as_dragged(page, viewer)
                 for position in ((20.0, -20.0, 10.0), (-20.0, -20.0, 12.0)):  # viser units: 10 x nerfstudio's
                     _draw_view(page, server, panel, position, (0.45, 0.40, 0.55, 0.50))  # a small square
             except Exception:
@@ -134,6 +135,43 @@ def _draw_view(page, server, panel, position, square) -> None:
     page.get_by_role("button", name="Add view").click()
     wait_for(lambda: len(panel.session.views) >= wanted, "the added view", panel=panel)
     page.get_by_text("view(s).").first.wait_for(timeout=120_000)  # pointer events off again
+    # The camera steps back from where the view was taken, so its frustum does not fill the screen.
+    from sked_ns.engine.viewer import STEP_BACK
+
+    distance = np.linalg.norm(np.asarray(client.camera.position) - np.asarray(client.camera.look_at))
+    assert distance == pytest.approx(STEP_BACK * np.linalg.norm(position), rel=0.05)
+
+
+def _opens_framed_and_moves_as_dragged(page, viewer) -> None:
+    """The browser opens on the scene as its photos show it, the SKED panel above nerfstudio's controls; a drag and
+    a wheel turn move the camera as they do for a user (the server sees the browser's camera)."""
+    from nerfstudio.viewer.viewer import VISER_NERFSTUDIO_SCALE_RATIO
+
+    from sked_ns.drawing.sketch_viewer import training_poses
+    from sked_ns.engine.viewer import scene_framing
+
+    client = wait_for(lambda: next(iter(viewer.viser_server.get_clients().values()), None), "the browser to connect")
+    position, look_at, _ = scene_framing(training_poses(viewer.pipeline))
+    wait_for(lambda: np.allclose(client.camera.position, position * VISER_NERFSTUDIO_SCALE_RATIO, atol=1e-2),
+             "the framed opening view")
+    assert np.allclose(client.camera.look_at, look_at * VISER_NERFSTUDIO_SCALE_RATIO, atol=1e-2)
+    sked = page.get_by_text("SKED sketch").first.bounding_box()
+    control = page.get_by_role("tab", name="Control").first.bounding_box()
+    assert sked["y"] < control["y"], "the SKED panel is the sidebar's first"
+    canvas = page.locator("canvas").first.bounding_box()
+    x, y = canvas["x"] + canvas["width"] / 2, canvas["y"] + canvas["height"] / 2
+    before = np.asarray(client.camera.position)
+    page.mouse.move(x, y)
+    page.mouse.down()
+    page.mouse.move(x + 150, y + 40, steps=10)
+    page.mouse.up()
+    wait_for(lambda: not np.allclose(client.camera.position, before, atol=1e-3), "the dragged camera")
+    dragged = np.asarray(client.camera.position)
+    distance = lambda: np.linalg.norm(np.asarray(client.camera.position) - np.asarray(client.camera.look_at))  # noqa: E731
+    orbit = distance()
+    page.mouse.wheel(0, -600)
+    wait_for(lambda: abs(distance() - orbit) > 1e-3 * orbit, "the wheel's zoom")
+    assert not np.allclose(client.camera.position, dragged)
 
 
 OVERVIEW = (12.0, -16.0, 9.0)

@@ -227,3 +227,28 @@ def test_a_slow_capture_says_how_long_it_has_been_rendering(scene, sketch_viewer
     assert any(line.startswith("Still rendering the captured view (") for line in said[1:-2]), said
     assert said[-1].startswith("Click the points"), said
 
+
+
+def _look_at_pose(position, target, up=(0.0, 0.0, 1.0)) -> np.ndarray:
+    """A 3x4 OpenGL camera-to-world at `position` looking at `target`."""
+    forward = np.asarray(target, float) - np.asarray(position, float)
+    forward /= np.linalg.norm(forward)
+    right = np.cross(forward, up)
+    right /= np.linalg.norm(right)
+    true_up = np.cross(right, forward)
+    return np.stack([right, true_up, -forward, np.asarray(position, float)], axis=1)
+
+
+def test_the_viewer_opens_on_the_point_the_photos_look_at_from_where_they_were_taken(rng):
+    from sked_ns.engine.viewer import scene_framing
+
+    target = np.array([0.3, -0.2, 0.1])
+    angles = rng.uniform(0, 2 * np.pi, 12)
+    positions = np.stack([2 * np.cos(angles), 2 * np.sin(angles), rng.uniform(0.5, 1.0, 12)], axis=1) + target
+    poses = np.stack([_look_at_pose(p, target) for p in positions])
+    position, look_at, up = scene_framing(poses)
+    assert np.allclose(look_at, target, atol=1e-9)
+    assert any(np.allclose(position, p) for p in positions)  # a pose the photos were taken from
+    assert up[2] > 0.8
+    parallel = np.stack([_look_at_pose(p, p + np.array([0.0, 1.0, 0.0])) for p in positions[:4] * [1, 0, 1]])
+    assert np.allclose(scene_framing(parallel)[1], 0.0)  # axes that never meet: the origin nerfstudio centres on
