@@ -79,7 +79,7 @@ class SkedDataManager(VanillaDataManager):
 
     @property
     def data_frame_transform(self) -> DataparserTransform:
-        """A sketch set's data frame (the data's transforms.json) -> model frame (novel_views.data_frame_transform)."""
+        """A sketch set's data frame (the data's transforms.json) -> model frame (sketches.data_frame.data_frame_transform)."""
         from sked_ns.sketches.data_frame import data_frame_transform
 
         return data_frame_transform(self.config.dataparser, self.dataparser_transform)

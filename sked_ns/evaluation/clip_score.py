@@ -13,7 +13,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from sked_ns.evaluation.eval_args import DEFAULT_CLIP  # noqa: F401  (the command line names it)
+from sked_ns.evaluation.eval_args import DEFAULT_CLIP
 from sked_ns.sketches.random_views import look_at, orbit_position
 
 # OpenAI CLIP's input normalisation (the constants of every CLIP image processor config).

@@ -13,8 +13,7 @@ import torch
 from sked_ns.engine.base_scene import resolve_base
 from sked_ns.errors import SkedFileNotFoundError, SkedUserError, check_writable_folder, warn
 from sked_ns.evaluation import novel_views
-from sked_ns.evaluation.clip_score import DEFAULT_CLIP
-from sked_ns.evaluation.eval_args import eval_parser
+from sked_ns.evaluation.eval_args import DEFAULT_CLIP, eval_parser
 from sked_ns.evaluation.metrics import SSIM_MIN_SIDE
 from sked_ns.evaluation.render import resized_mask
 from sked_ns.method.frozen_base import base_weights

@@ -25,7 +25,8 @@ from sked_ns.atomic import publish_atomically, write_text_atomically
 from sked_ns.engine.base_scene import checkpoint_step
 from sked_ns.errors import SkedUserError, warn
 from sked_ns.evaluation import novel_views
-from sked_ns.evaluation.clip_score import DEFAULT_CLIP, ClipScorer, orbit_cameras
+from sked_ns.evaluation.clip_score import ClipScorer, orbit_cameras
+from sked_ns.evaluation.eval_args import DEFAULT_CLIP
 from sked_ns.evaluation.eval_inputs import (
     check_base,
     check_device,

@@ -38,7 +38,7 @@ from torch import Tensor
 from sked_ns.errors import SkedFileNotFoundError, SkedUserError
 from sked_ns.evaluation.metrics import SSIM_MIN_SIDE, psnr_outside, ssim_outside
 from sked_ns.sketches.cameras import PinholeCamera, cameras_of
-from sked_ns.sketches.data_frame import IMPLIED_COLMAP_TRANSFORM, data_frame_transform, file_to_model  # noqa: F401 (re-exported)
+from sked_ns.sketches.data_frame import file_to_model
 from sked_ns.sketches.data_frame import matrix_field as _matrix
 from sked_ns.sketches.data_frame import number_field as _number
 from sked_ns.sketches.sketch_set import DataparserTransform

@@ -13,6 +13,7 @@ import torch
 from sked_ns.demo.scenes.sphere import orbit_pose
 from sked_ns.errors import SkedUserError
 from sked_ns.evaluation import novel_views
+from sked_ns.sketches.data_frame import data_frame_transform
 from sked_ns.sketches.sketch_set import DataparserTransform
 
 WIDTH, HEIGHT = 40, 30
@@ -194,7 +195,7 @@ def test_a_sketch_set_copied_from_an_ns_process_data_transforms_json_lands_on_it
     mask[10:20, 10:20] = True
     views = [SketchView(mask=mask, camera_to_world=POSES[i][:3].copy(), fl_x=FOCAL, fl_y=FOCAL, cx=WIDTH / 2,
                         cy=HEIGHT / 2) for i in (0, 1)]
-    model_frame = SketchSet(views=views, frame="data").in_model_frame(novel_views.data_frame_transform(config, run_transform))
+    model_frame = SketchSet(views=views, frame="data").in_model_frame(data_frame_transform(config, run_transform))
     for view, index in zip(model_frame.views, (0, 1)):  # frames are named in order, so nerfstudio keeps it
         np.testing.assert_allclose(view.camera_to_world, outputs.cameras.camera_to_worlds[index].numpy(), atol=1e-5)
     # The edit's datamanager hands the model this frame for its sketch set.
@@ -206,6 +207,6 @@ def test_a_sketch_set_copied_from_an_ns_process_data_transforms_json_lands_on_it
                                outputs.cameras.camera_to_worlds[1].numpy(), atol=1e-5)
     # Without applied_transform in the file, the data frame is the run's own.
     plain = write_nerfstudio(tmp_path / "plain", per_frame=False)
-    same = novel_views.data_frame_transform(NerfstudioDataParserConfig(data=plain), run_transform)
+    same = data_frame_transform(NerfstudioDataParserConfig(data=plain), run_transform)
     np.testing.assert_allclose(same.transform, run_transform.transform)
     assert same.scale == pytest.approx(run_transform.scale)
