@@ -207,8 +207,32 @@ def restart_command(config) -> str:
         words += ["--sketches", str(model.sketches)]
     if model.prompt:
         words += ["--prompt", str(model.prompt)]
+    words += guidance_words(getattr(model, "guidance", None))
     words += [dataparser_name(datamanager.dataparser), "--data", run_data(datamanager)]
     return shlex.join(words)
+
+
+def guidance_words(guidance) -> list:
+    """The guidance as typed: its subcommand and the settings that differ from its defaults (none for the default
+    guidance at its defaults), after the plain flags and before the dataparser, as tyro reads them."""
+    from dataclasses import fields
+
+    from sked_ns.guidance import StableDiffusionGuidanceConfig, guidance_name
+
+    if guidance is None:
+        return []
+    default = type(guidance)()
+    flags = []
+    for item in fields(guidance):
+        value = getattr(guidance, item.name)
+        if not item.init or item.name.startswith("_") or value == getattr(default, item.name):
+            continue
+        values = value if isinstance(value, (list, tuple)) else [value]
+        if all(isinstance(v, (bool, int, float, str, Path)) for v in values):
+            flags += [f"--pipeline.model.guidance.{item.name.replace('_', '-')}", *map(str, values)]
+    if type(guidance) is StableDiffusionGuidanceConfig and not flags:
+        return []
+    return [f"pipeline.model.guidance:{guidance_name(guidance)}", *flags]
 
 
 def check_same_frame(base: BaseScene, here: DataparserTransform) -> None:

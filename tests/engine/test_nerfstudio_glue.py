@@ -252,3 +252,18 @@ def test_printed_commands_are_shell_quoted_and_run_as_printed(tmp_path):
     assert words == ["ns-train", "sked", "--load-dir", "/runs/it's mine", "--sketches", str(edit.pipeline.model.sketches),
                      "--prompt", 'a "red" hat; rm -rf ~', "nerfstudio-data", "--data", str(data)]
     assert not (tmp_path / "PWNED").exists()
+
+    # Another guidance is part of the edit: its subcommand and its own settings, where tyro reads them.
+    import tyro
+
+    from sked_ns.demo.reference_guidance import ReferenceGuidanceConfig
+
+    edit.pipeline.model.guidance = ReferenceGuidanceConfig(target="vase")
+    words = shlex.split(restart_command(edit))
+    assert words[words.index("--prompt") + 2:words.index("nerfstudio-data")] == [
+        "pipeline.model.guidance:reference", "--pipeline.model.guidance.target", "vase"]
+    from sked_ns.engine.presets import edit_preset
+
+    preset = edit_preset()
+    parsed = tyro.cli(type(preset), default=preset, args=words[2:])
+    assert parsed.pipeline.model.guidance == edit.pipeline.model.guidance
