@@ -34,7 +34,7 @@ from sked_ns.drawing.sketching import (
     sketch_set_coverage,
     write_canvases,
 )
-from sked_ns.engine.viewer import add_frustum, frame_on_connect, show_sketch_views, step_back
+from sked_ns.engine.viewer import add_frustum, frame_on_connect, show_sketch_views, step_back, training_poses
 from sked_ns.errors import ArgumentParser, SkedFileExistsError, SkedUserError, reading
 from sked_ns.progress import Heartbeat
 from sked_ns.sketches.sketch_set import SKETCHES_JSON, DataparserTransform
@@ -60,11 +60,6 @@ def _load(run: Path, device: str, flag: str = "sked-sketch", data: Optional[Path
                  "it was trained on where its config.yml says."):
         pipeline = load_pipeline(run, device, flag=flag, data=data)
     return run, pipeline, sketch_frame(pipeline)
-
-
-def training_poses(pipeline) -> np.ndarray:
-    """The training cameras' (N, 3, 4) poses in the model frame (what the viewer shows)."""
-    return pipeline.datamanager.train_dataset.cameras.camera_to_worlds.detach().cpu().numpy()
 
 
 def sketch_frame(pipeline) -> DataparserTransform:

@@ -14,6 +14,7 @@ import sys
 from pathlib import Path
 from typing import Iterator, Optional, Sequence
 
+from sked_ns.engine.base_scene import dataparser_name
 from sked_ns.errors import one_line
 
 TRAIN_COMMANDS = ("ns-train", "train.py")
@@ -35,14 +36,6 @@ DATAPARSER = "--pipeline.datamanager.dataparser."
 """nerfstudio gives the dataparser's fields after its subcommand, without this prefix."""
 
 
-def dataparser_command(dataparser) -> str:
-    """The subcommand that selects this dataparser config (`nerfstudio-data` for the presets)."""
-    from nerfstudio.configs.dataparser_configs import all_dataparsers
-
-    return next((name for name, config in all_dataparsers.items() if type(config) is type(dataparser)),
-                "<dataparser>")
-
-
 def flags_of(config, prefix: str = "--") -> Iterator[str]:
     """The flags tyro derives from a config: each field by its dotted path, `_` written `-` (the dataparser's as
     `nerfstudio-data --field`)."""
@@ -52,7 +45,7 @@ def flags_of(config, prefix: str = "--") -> Iterator[str]:
         flag = prefix + item.name.replace("_", "-")
         value = getattr(config, item.name, None)
         if flag + "." == DATAPARSER:
-            yield from flags_of(value, dataparser_command(value) + " --")
+            yield from flags_of(value, dataparser_name(value) + " --")
         elif dataclasses.is_dataclass(value) and not isinstance(value, type):
             yield from flags_of(value, flag + ".")
         else:
@@ -150,5 +143,6 @@ def install_for_sked_train(methods, argv: Optional[Sequence[str]] = None) -> boo
         from tyro._errors import _parse_error_hook
     except ImportError:  # a tyro without the hook: its box stays
         return False
-    _parse_error_hook.set(one_line_hook(f"ns-train {method}", methods[method].config))  # read when tyro.cli parses, later in this context
+    # Read when tyro.cli parses, later in this same context.
+    _parse_error_hook.set(one_line_hook(f"ns-train {method}", methods[method].config))
     return True

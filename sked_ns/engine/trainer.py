@@ -262,13 +262,12 @@ class SkedTrainer(Trainer):
 
         Through viser directly: nerfstudio's ViewerControl offers no scene objects (the model's controls,
         beta and the show-base / tint switches, are nerfstudio viewer elements, method/edit.py)."""
-        from sked_ns.engine.viewer import frame_on_connect, show_sketch_views
+        from sked_ns.engine.viewer import frame_on_connect, show_sketch_views, training_poses
 
         model = self.pipeline.model
         server = self.viewer_state.viser_server
         show_sketch_views(server, model.sketch_set.views, model.edit_box)
-        poses = self.pipeline.datamanager.train_dataset.cameras.camera_to_worlds.detach().cpu().numpy()
-        frame_on_connect(server, poses, look_at=model.edit_box.center)  # the edit in view
+        frame_on_connect(server, training_poses(self.pipeline), look_at=model.edit_box.center)  # the edit in view
         lines = [f"- view {i}: {v.width}x{v.height}, mask {v.mask.mean():.0%} of the image"
                  for i, v in enumerate(model.sketch_set.views)]
         with server.gui.add_folder("SKED sketches"):

@@ -16,6 +16,11 @@ STEP_BACK = 1.6
 back to this many times its distance from what it looks at."""
 
 
+def training_poses(pipeline) -> np.ndarray:
+    """The training cameras' (N, 3, 4) poses in the model frame (what the viewer shows)."""
+    return pipeline.datamanager.train_dataset.cameras.camera_to_worlds.detach().cpu().numpy()
+
+
 def scene_framing(cameras_to_world: np.ndarray) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(position, look-at point, up), model frame, that show the scene as its photos do: the training camera nearest
     the cameras' mean position, looking at the point nearest every camera's optical axis (the origin, where

@@ -47,14 +47,14 @@ def base_weights(options) -> Path:
     once the base run no longer holds it."""
     checkpoint = Path(options.base_checkpoint)
     kept = getattr(options, "base_kept", None)
-    if checkpoint.exists() or kept is None or not Path(kept).exists():
-        if not checkpoint.exists():
-            raise SkedFileNotFoundError(
-                f"{checkpoint}: the edit's base checkpoint is missing (its base run saved a newer one and removed it, "
-                "or was moved); the edit is its changes to exactly that base, so loading it needs that file. Put "
-                f"it back there{'' if kept is None else f' or at {kept}'}.")
+    if checkpoint.exists():
         return checkpoint
-    return Path(kept)
+    if kept is not None and Path(kept).exists():
+        return Path(kept)
+    raise SkedFileNotFoundError(
+        f"{checkpoint}: the edit's base checkpoint is missing (its base run saved a newer one and removed it, or was "
+        "moved); the edit is its changes to exactly that base, so loading it needs that file. Put it back there"
+        f"{'' if kept is None else f' or at {kept}'}.")
 
 
 def read_model_state(checkpoint: Path) -> Dict[str, Tensor]:

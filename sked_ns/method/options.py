@@ -11,7 +11,7 @@ import copy
 import warnings
 from dataclasses import dataclass, field, fields
 from pathlib import Path
-from typing import TYPE_CHECKING, ClassVar, FrozenSet, List, Literal, Optional
+from typing import TYPE_CHECKING, ClassVar, Dict, FrozenSet, List, Literal, Optional
 
 import torchmetrics.image.lpip as lpip_module
 
@@ -221,11 +221,11 @@ def taken_from_the_base(config_class: type, base_class: type) -> None:
         if base_field.name not in owned and not base_field.name.startswith("_") and base_field.name in hints:
             config_class.__annotations__[base_field.name] = Annotated[hints[base_field.name], tyro.conf.Suppress]
     # A field both define is SKED's (e.g. the prompt): its help is SKED's, not nerfstudio's first-found docstring.
-    ours = get_type_hints(SkedOptions, include_extras=True)
+    ours, helps = get_type_hints(SkedOptions, include_extras=True), field_helps(SkedOptions)
     for option in fields(SkedOptions):
-        if option.name in hints and field_help(SkedOptions, option.name):
+        if option.name in hints and helps.get(option.name):
             config_class.__annotations__[option.name] = Annotated[ours[option.name],
-                                                                  tyro.conf.arg(help=field_help(SkedOptions, option.name))]
+                                                                  tyro.conf.arg(help=helps[option.name])]
     # The edit keeps the base's cameras (base_camera_optimizer): none to choose; the base's link is set at the start.
     hidden = {"camera_optimizer": hints, "base_kept": ours}
     for name, types in hidden.items():
@@ -233,15 +233,14 @@ def taken_from_the_base(config_class: type, base_class: type) -> None:
             config_class.__annotations__[name] = Annotated[types[name], tyro.conf.Suppress]
 
 
-def field_help(config_class: type, name: str) -> str:
-    """The docstring under a dataclass field in its class's source (what tyro shows as its help), one line."""
+def field_helps(config_class: type) -> Dict[str, str]:
+    """Each dataclass field's docstring in its class's source (what tyro shows as its help), as one line."""
     import ast
     import inspect
     import textwrap
 
     body = ast.parse(textwrap.dedent(inspect.getsource(config_class))).body[0].body
-    for statement, following in zip(body, body[1:]):
-        if (isinstance(statement, ast.AnnAssign) and getattr(statement.target, "id", None) == name
-                and isinstance(following, ast.Expr) and isinstance(following.value, ast.Constant)):
-            return " ".join(str(following.value.value).split())
-    return ""
+    return {statement.target.id: " ".join(str(following.value.value).split())
+            for statement, following in zip(body, body[1:])
+            if isinstance(statement, ast.AnnAssign) and isinstance(statement.target, ast.Name)
+            and isinstance(following, ast.Expr) and isinstance(following.value, ast.Constant)}

@@ -24,12 +24,12 @@ from typing import Iterator, List, Optional
 import torch
 from nerfstudio.utils.rich_utils import CONSOLE
 
-from sked_ns.drawing.sketch_viewer import CPU_PREVIEW_WIDTH, _load, renderer, training_poses
+from sked_ns.drawing.sketch_viewer import CPU_PREVIEW_WIDTH, _load, renderer
 from sked_ns.drawing.sketching import SketchSession
 from sked_ns.engine.drawn_sketches import session_sketches
 from sked_ns.engine.edit_inputs import check_edit_inputs
 from sked_ns.engine.trainer import SkedTrainer, SkedTrainerConfig, save_run_config
-from sked_ns.engine.viewer import frame_on_connect
+from sked_ns.engine.viewer import frame_on_connect, training_poses
 from sked_ns.errors import SkedUserError
 from sked_ns.run_lock import LOCK_NAME, hold, release
 from sked_ns.session.panel import SessionPanel, StartRequest

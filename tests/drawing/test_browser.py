@@ -147,8 +147,7 @@ def _opens_framed_and_moves_as_dragged(page, viewer) -> None:
     a wheel turn move the camera as they do for a user (the server sees the browser's camera)."""
     from nerfstudio.viewer.viewer import VISER_NERFSTUDIO_SCALE_RATIO
 
-    from sked_ns.drawing.sketch_viewer import training_poses
-    from sked_ns.engine.viewer import scene_framing
+    from sked_ns.engine.viewer import scene_framing, training_poses
 
     client = wait_for(lambda: next(iter(viewer.viser_server.get_clients().values()), None), "the browser to connect")
     position, look_at, _ = scene_framing(training_poses(viewer.pipeline))
