@@ -4,18 +4,29 @@ nerfstudio parses `ns-train`'s arguments with tyro, which draws a multi-line box
 offers a hook that fires just before it reports a parse failure (`tyro._errors.on_parse_error`, a context
 variable): set only when the process is `ns-train sked*`, so every other method keeps tyro's box. The hook
 module is private to tyro; where it is missing or its events change shape, tyro's own box is shown instead.
+
+tyro reads a command line in order: the edit's options, then a subcommand (a guidance, the dataparser's name)
+and the options of what it chose, each only after its subcommand. The hook reads the method's config as tyro
+does (hidden fields left out, each subcommand's own options) and the words typed, so a line says which of those
+was wrong: a misspelt flag or subcommand, an option of another guidance, a flag that swallowed the next one as
+its value, a word processor's dash.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import difflib
+import re
 import sys
+import unicodedata
 from pathlib import Path
-from typing import Iterator, Optional, Sequence
+from typing import Any, Dict, List, Optional, Sequence, Union, get_args, get_origin, get_type_hints
+
+from typing_extensions import Annotated
 
 from sked_ns.engine.base_scene import dataparser_name
 from sked_ns.errors import one_line
+from sked_ns.method.options import SkedOptions
 
 TRAIN_COMMANDS = ("ns-train", "train.py")
 """`sys.argv[0]` of nerfstudio's trainer: its console script, or `python -m nerfstudio.scripts.train`."""
@@ -31,25 +42,132 @@ def sked_train_method(argv: Sequence[str], methods: Sequence[str]) -> Optional[s
 SUGGESTIONS = 3
 """Close flags named after an unrecognised one (tyro's box lists them too)."""
 
-
 DATAPARSER = "--pipeline.datamanager.dataparser."
 """nerfstudio gives the dataparser's fields after its subcommand, without this prefix."""
 
+DATAPARSER_GROUP = "dataparser"
 
-def flags_of(config, prefix: str = "--") -> Iterator[str]:
-    """The flags tyro derives from a config: each field by its dotted path, `_` written `-` (the dataparser's as
-    `nerfstudio-data --field`)."""
-    for item in dataclasses.fields(config):
-        if not item.init or item.name.startswith("_"):
-            continue
-        flag = prefix + item.name.replace("_", "-")
-        value = getattr(config, item.name, None)
-        if flag + "." == DATAPARSER:
-            yield from flags_of(value, dataparser_name(value) + " --")
+MODEL = "--pipeline.model."
+"""An edit's model options: those tyro hides are the base's, copied from it."""
+
+TYPOGRAPHIC_DASHES = "\u2010\u2011\u2012\u2013\u2014\u2015\u2212"
+"""What word processors and chat windows make of `--`: Unicode hyphens, the en and em dashes, the minus sign."""
+
+KINDS = {"INT": ("an integer", "integers"), "FLOAT": ("a number", "numbers"), "STR": ("text", "texts"),
+         "PATH": ("a path", "paths")}
+"""tyro's metavars in words: one value, several."""
+
+
+@dataclasses.dataclass
+class CommandLine:
+    """What tyro offers on a method's command line, read from its config as tyro reads it."""
+
+    flags: List[str] = dataclasses.field(default_factory=list)
+    """Every option as typed, after its subcommand where it has one: `--prompt`, `nerfstudio-data --data`,
+    `pipeline.model.guidance:reference --pipeline.model.guidance.target`."""
+    hidden: List[str] = dataclasses.field(default_factory=list)
+    """Fields tyro is told to hide (`tyro.conf.Suppress`), as flags: an edit's model settings copied from its base."""
+    subcommands: Dict[str, str] = dataclasses.field(default_factory=dict)
+    """Each subcommand and the group it chooses in (`pipeline.model.guidance`, or the dataparser)."""
+    defaults: Dict[str, str] = dataclasses.field(default_factory=dict)
+    """Each group's default subcommand (its options, too, follow it only once it is named)."""
+
+    @classmethod
+    def of(cls, config) -> "CommandLine":
+        line = cls()
+        line._read(config, "--", "")
+        return line
+
+    def _read(self, config, prefix: str, subcommand: str) -> None:
+        hints = _type_hints(type(config))
+        for item in dataclasses.fields(config):
+            if item.init and not item.name.startswith("_"):
+                flag = prefix + item.name.replace("_", "-")
+                self._field(flag, getattr(config, item.name, None), hints.get(item.name), subcommand)
+
+    def _field(self, flag: str, value, hint, subcommand: str) -> None:
+        if _suppressed(hint):
+            self.hidden.append(f"{subcommand} {flag}".lstrip())
+        elif flag + "." == DATAPARSER:
+            from nerfstudio.configs.dataparser_configs import all_dataparsers
+
+            self.subcommands.update(dict.fromkeys(all_dataparsers, DATAPARSER_GROUP))
+            self.defaults[DATAPARSER_GROUP] = dataparser_name(value)
+            self._read(value, "--", dataparser_name(value))
+        elif _subcommand_types(hint):
+            group = flag[2:]
+            for name, member in _subcommand_types(hint).items():
+                self.subcommands[f"{group}:{name}"] = group
+                if type(value) is member:
+                    self.defaults[group] = f"{group}:{name}"
+                chosen = value if type(value) is member else _default_instance(member)
+                if chosen is not None:
+                    self._read(chosen, flag + ".", f"{group}:{name}")
         elif dataclasses.is_dataclass(value) and not isinstance(value, type):
-            yield from flags_of(value, flag + ".")
-        else:
-            yield flag
+            self._read(value, flag + ".", subcommand)
+        elif isinstance(value, dict) and value:  # tyro offers each key of a dict given in the config
+            for key, item in value.items():
+                self._field(f"{flag}.{str(key).replace('_', '-')}", item, None, subcommand)
+        elif not callable(value):  # a function or class is fixed: tyro offers no flag for it
+            self.flags.append(f"{subcommand} {flag}".lstrip())
+
+    def where(self, flag: str) -> List[str]:
+        """The subcommands after which `flag` is offered ("" for the edit's own options)."""
+        return [offered.rpartition(" ")[0] for offered in self.flags if bare(offered) == flag]
+
+    def options_of(self, subcommand: str) -> List[str]:
+        return [bare(flag) for flag in self.flags if flag.startswith(subcommand + " ")]
+
+    def chosen(self, group: str, words: Sequence[str]) -> Optional[str]:
+        """The group's subcommand among the words typed, if one is."""
+        named = [word for word in words if self.subcommands.get(word) == group]
+        return named[0] if named else None
+
+
+def _type_hints(config_class: type) -> Dict[str, Any]:
+    try:
+        return get_type_hints(config_class, include_extras=True)
+    except Exception:  # a forward reference tyro resolves its own way: the fields are read without their marks
+        return {}
+
+
+def _suppressed(hint) -> bool:
+    import tyro
+
+    return get_origin(hint) is Annotated and any(mark is tyro.conf.Suppress for mark in get_args(hint)[1:])
+
+
+def _subcommand_types(hint) -> Dict[str, type]:
+    """The subcommands tyro makes of a field's type (a Union of `tyro.conf.subcommand`-named types) by name."""
+    while get_origin(hint) is Annotated:
+        hint = get_args(hint)[0]
+    if get_origin(hint) is not Union:
+        return {}
+    named = {}
+    for member in get_args(hint):
+        marks = get_args(member)[1:] if get_origin(member) is Annotated else ()
+        for mark in marks:
+            if type(mark).__name__ == "_SubcommandConfig" and getattr(mark, "name", None):
+                named[mark.name] = get_args(member)[0]
+    return named
+
+
+def _default_instance(config_class: type):
+    try:
+        return config_class()
+    except Exception:  # a subcommand without defaults for all its fields: its options are not listed
+        return None
+
+
+def bare(flag: str) -> str:
+    """A flag without the subcommand it follows."""
+    return flag.rpartition(" ")[2]
+
+
+def flags_of(config) -> List[str]:
+    """The flags tyro derives from a config: each field by its dotted path, `_` written `-`, an option of a
+    subcommand after it (`nerfstudio-data --data`)."""
+    return CommandLine.of(config).flags
 
 
 def last_word(flag: str) -> str:
@@ -63,12 +181,111 @@ def close_flags(token: str, flags: Sequence[str]) -> list:
     if same_word:
         return same_word[:SUGGESTIONS]
     group = token.rsplit(".", 1)[0] + "." if "." in token else "--"
-    siblings = {last_word(flag): flag for flag in flags
-                if (flag.startswith(group) and "." not in flag[len(group):]) or (group == "--" and "." not in flag)}
+    siblings = {last_word(flag): flag for flag in flags if (bare(flag).startswith(group) and "." not in
+                bare(flag)[len(group):]) or (group == "--" and "." not in bare(flag))}
     near = difflib.get_close_matches(last_word(token), list(siblings), n=SUGGESTIONS, cutoff=0.75)
     if near:
         return [siblings[word] for word in near]
     return difflib.get_close_matches(token, flags, n=SUGGESTIONS, cutoff=0.85)
+
+
+def _dashes(token: str) -> Optional[str]:
+    """How a flag's dashes were mistyped (a word processor's dash for `--`, one hyphen), or None."""
+    dashes = re.match(f"[-{TYPOGRAPHIC_DASHES}]+", token)
+    if dashes is None or dashes.group() == "--" or not token[dashes.end():][:1].isalpha():
+        return None
+    typographic = [dash for dash in dashes.group() if dash in TYPOGRAPHIC_DASHES]
+    if typographic:
+        return f"a typographic dash ({unicodedata.name(typographic[0]).lower()}, what word processors make of --)"
+    return f"{len(dashes.group())} hyphens" if len(dashes.group()) > 1 else "one hyphen"
+
+
+def _subcommand_advice(token: str, line: CommandLine, words: Sequence[str]) -> Optional[str]:
+    group = line.subcommands.get(token)
+    if group is not None:
+        chosen = line.chosen(group, words)
+        if chosen not in (None, token):
+            return f"{token}: {chosen} was already given (one {group.rsplit('.', 1)[-1]} at a time)"
+        return (f"{token} at that place (a subcommand comes after the edit's options and before the dataparser's "
+                f"name; its own options follow it)")
+    named, group = token.rpartition(":")[2], token.rpartition(":")[0]
+    if group in line.subcommands.values():  # the group is right: match the name among its subcommands
+        offered = {sub.rpartition(":")[2]: sub for sub, of in line.subcommands.items() if of == group}
+        near = [offered[name] for name in difflib.get_close_matches(named, list(offered), n=SUGGESTIONS, cutoff=0.6)]
+        choices = f"; the {group.rsplit('.', 1)[-1]} subcommands are {', '.join(offered.values())}"
+    else:
+        near = difflib.get_close_matches(token, list(line.subcommands), n=SUGGESTIONS, cutoff=0.8)
+        choices = ""
+    if not near and not choices:
+        return None
+    return f"unknown subcommand {token}" + (f" (did you mean {' or '.join(near)}?)" if near else "") + choices
+
+
+def _misplaced(flag: str, line: CommandLine, words: Sequence[str]) -> Optional[str]:
+    """Why a flag tyro offers somewhere was not taken where it was typed."""
+    after = line.where(flag)
+    if not after:
+        return None
+    if "" in after:
+        return (f"{flag} at that place (the edit's options come before the subcommands: ns-train sked --prompt ... "
+                f"[pipeline.model.guidance:<name> ...] nerfstudio-data --data ...)")
+    group = line.subcommands.get(after[0])
+    if group == DATAPARSER_GROUP:
+        return f"{flag} is an option of the dataparser: it goes after its name ({after[0]} {flag} ...)"
+    kind, chosen = group.rsplit(".", 1)[-1], line.chosen(group, words)
+    owners = " and ".join(sub + (f", the default {kind}" if sub == line.defaults.get(group) else "") for sub in after)
+    if chosen in after:
+        return f"{flag} at that place: it goes right after {chosen}, before the dataparser's name"
+    if chosen is not None:
+        return (f"the {kind} {chosen} has no setting {flag} (a setting of {owners}); its settings are "
+                f"{', '.join(line.options_of(chosen)) or 'none'}")
+    return f"{flag} is a setting of {owners}: name the {kind} before it ({after[0]} {flag} ...)"
+
+
+def _advice(token: str, line: CommandLine, words: Sequence[str]) -> Optional[str]:
+    """What was wrong with one unrecognised word, where it is more than a misspelling; None for those."""
+    how = _dashes(token)
+    if how is not None:
+        spelt = token.split("=", 1)[0]
+        meant = "--" + spelt.lstrip("-" + TYPOGRAPHIC_DASHES)
+        near = [] if line.where(meant) else close_flags(meant, line.flags)
+        if near:
+            return f"{spelt} begins with {how}, not two ASCII hyphens (did you mean {' or '.join(near)}?)"
+        if line.where(meant) or "typographic" in how:
+            return f"{spelt} begins with {how}: type {meant} (two ASCII hyphens)"
+        return None  # an unknown flag, whatever its dashes
+    if not token.startswith("-"):
+        return _subcommand_advice(token, line, words)
+    flag = token.split("=", 1)[0]
+    if flag.startswith(MODEL) and any(flag == hidden or flag.startswith(hidden + ".") for hidden in line.hidden):
+        if flag[len(MODEL):].replace("-", "_") in {option.name for option in dataclasses.fields(SkedOptions)}:
+            return f"{flag} is not an option: the edit sets it itself"
+        return f"{flag} is the base's: an edit keeps its base's model settings (train the base with it instead)"
+    return _misplaced(flag, line, words)
+
+
+def _options(tokens: Sequence[str], line: CommandLine) -> List[str]:
+    """The unrecognised words that were meant as flags or subcommands, not values."""
+    meant = [token for token in tokens if token[:1] in "-" + TYPOGRAPHIC_DASHES or ":" in token
+             or token in line.subcommands]
+    return meant or list(tokens)
+
+
+def unrecognized(tokens: Sequence[str], line: CommandLine, words: Sequence[str] = ()) -> str:
+    swallowed = [at for at in range(1, len(words)) if words[at] in line.subcommands and words[at - 1][:2] == "--"
+                 and "=" not in words[at - 1]]
+    if swallowed:  # the options after the subcommand are unrecognised only because it was read as a flag's value
+        flag, subcommand = words[swallowed[0] - 1], words[swallowed[0]]
+        return f"{flag} needs a value; it was followed by {subcommand}, which it took as its value"
+    options, said, plain = _options(tokens, line), [], []
+    for option in options:
+        advice = _advice(option, line, words)
+        (said if advice else plain).append(advice or option)
+    if plain:
+        meant = [flag for option in plain if option.startswith("--") for flag in close_flags(option, line.flags)]
+        said.insert(0, f"unrecognized option{'s' if len(plain) > 1 else ''} {' '.join(plain)}"
+                       + (f" (did you mean {' or '.join(dict.fromkeys(meant))}?)" if meant else ""))
+    return "; ".join(said)
 
 
 def _flag(argument) -> str:
@@ -78,36 +295,102 @@ def _flag(argument) -> str:
     return argument.display_name()
 
 
-def unrecognized(tokens: Sequence[str], flags: Sequence[str]) -> str:
-    options = [token for token in tokens if token.startswith("-")] or list(tokens)
-    said = f"unrecognized option{'s' if len(options) > 1 else ''} {' '.join(options)}"
-    meant = [flag for option in options if option.startswith("--") for flag in close_flags(option, flags)]
-    if any(option in flags for option in options):  # a real flag in the wrong place (before or after a subcommand)
-        said += (" at that place (the edit's options come before the dataparser's name, the dataparser's after it: "
-                 "ns-train sked --prompt ... nerfstudio-data --data ...)")
-    elif meant:
-        said += f" (did you mean {' or '.join(dict.fromkeys(meant))}?)"
-    return said
+def _kind(argument) -> str:
+    """The values an argument takes, in words: `an integer`, `2 numbers`, `one of cpu, cuda, mps`."""
+    lowered = argument.lowered
+    choices = [str(choice) for choice in lowered.choices or ()]
+    if sorted(choices) == ["False", "True"]:
+        return "True or False"
+    if choices:
+        return "one of " + ", ".join(choices)
+    metavar = str(lowered.metavar or "")
+    optional = metavar.startswith("{None}|")
+    names = metavar.removeprefix("{None}|").split()
+    if names and len(set(names)) == 1 and names[0] in KINDS:
+        one, several = KINDS[names[0]]
+        said = one if len(names) == 1 else f"{len(names)} {several}"
+    else:
+        said = metavar or "a value"
+    return said + (" or None" if optional else "")
 
 
-def describe(event, flags: Sequence[str] = ()) -> Optional[str]:
-    """What was wrong, in words a user acts on; None for an event this does not know (tyro's box is shown)."""
+def _typed_after(argument, words: Sequence[str]) -> Optional[List[str]]:
+    """The words typed after the argument's last flag (its `=value` alone where given so); None if it is not
+    among the words."""
+    names = set(getattr(argument.lowered, "name_or_flags", None) or ())
+    for at in range(len(words) - 1, -1, -1):
+        name, equals, value = words[at].partition("=")
+        if name in names:
+            return [value] if equals else list(words[at + 1:])
+    return None
+
+
+def _not_a_value(word: str, line: CommandLine) -> bool:
+    return (word == "" or word in line.subcommands or word[:1] in TYPOGRAPHIC_DASHES
+            or (word.startswith("-") and word.lstrip("-")[:1].isalpha()))
+
+
+def _needs_value(argument, after: Sequence[str], line: CommandLine) -> str:
+    count = argument.lowered.nargs if isinstance(argument.lowered.nargs, int) else 1
+    given = []
+    for word in after[:count]:
+        if _not_a_value(word, line):
+            break
+        given.append(word)
+    said = f"{_flag(argument)} needs {'a value' if count == 1 else f'{count} values'} ({_kind(argument)})"
+    then = after[len(given)] if len(after) > len(given) else ""
+    if given:
+        return said + f"; it was given only {' '.join(given)}" + (f", then {then}" if then else "")
+    return said + (f"; it was followed by {then}" if then else "; none was given")
+
+
+def _bad_value(argument, value: str, line: CommandLine, words: Sequence[str]) -> str:
+    """A value a flag cannot take: the next flag or subcommand it swallowed, or a word it does not read."""
+    after = _typed_after(argument, words)
+    if _not_a_value(value, line):
+        return _needs_value(argument, after if after and after[0] == value else [value], line)
+    choices = [str(choice) for choice in argument.lowered.choices or ()]
+    near = ([choice for choice in choices if choice.lower() == value.lower()]
+            or [choice for choice in choices if value and value.lower() in choice.lower()]
+            or difflib.get_close_matches(value, choices, n=SUGGESTIONS, cutoff=0.75))
+    return f"{_flag(argument)} takes {_kind(argument)}, not {value!r}" + (
+        f" (did you mean {' or '.join(near)}?)" if near else "")
+
+
+def _failed(event, line: CommandLine, words: Sequence[str]) -> str:
+    """A value tyro parsed but could not build: an integer flag given a word, or given the next subcommand."""
+    argument = event.argument
+    if argument is None:
+        return one_line(event.message)
+    after, count = _typed_after(argument, words), argument.lowered.nargs
+    if after is None or not isinstance(count, int):
+        return f"{_flag(argument)}: {one_line(event.message)}"
+    if any(_not_a_value(word, line) for word in after[:count]) or len(after) < count:
+        return _needs_value(argument, after, line)
+    return _bad_value(argument, " ".join(after[:count]), line, words)
+
+
+def describe(event, line: Optional[CommandLine] = None, words: Sequence[str] = ()) -> Optional[str]:
+    """What was wrong, in words a user acts on (`words`: the command line after the method's name); None for an
+    event this does not know (tyro's box is shown)."""
     from tyro import _errors as events
 
+    line = line or CommandLine()
     if isinstance(event, events.UnrecognizedArgs):
-        return unrecognized(event.tokens, flags)
+        return unrecognized(event.tokens, line, words)
     if isinstance(event, events.MissingArgs):
         return "missing " + ", ".join(_flag(item.arg) for item in event.missing_arguments)
     if isinstance(event, events.InvalidChoice):
-        choices = ", ".join(str(choice) for choice in event.argument.lowered.choices or ())
-        return f"{_flag(event.argument)}: invalid choice {event.value!r} (choose from {choices})"
+        return _bad_value(event.argument, event.value, line, words)
     if isinstance(event, events.BadValue):
-        expected = event.argument.lowered.nargs
-        return f"{_flag(event.argument)}: missing value" + (f" ({expected} expected)" if isinstance(expected, int)
-                                                           else "")
+        if event.reason == "too_few_values":
+            return _needs_value(event.argument, _typed_after(event.argument, words) or [], line)
+        if event.reason == "fixed":
+            return (f"{_flag(event.argument)} is fixed and takes no value: leave out "
+                    f"{event.offending_value!r} after it")
+        return f"{_flag(event.argument)} cannot take the value it was given"
     if isinstance(event, events.InstantiationFailure):
-        where = f"{_flag(event.argument)}: " if event.argument is not None else ""
-        return where + one_line(event.message)
+        return _failed(event, line, words)
     if isinstance(event, events.MutexConflict):
         return f"{event.first_token} and {event.second_token} cannot be given together"
     if isinstance(event, events.SubcommandConflict):
@@ -116,13 +399,13 @@ def describe(event, flags: Sequence[str] = ()) -> Optional[str]:
     return None
 
 
-def one_line_hook(command: str, config=None):
-    """The hook for `command` (e.g. `ns-train sked`, whose config names its flags): one line on stderr, then exit
-    status 2 as tyro's own."""
+def one_line_hook(command: str, config=None, words: Sequence[str] = ()):
+    """The hook for `command` (e.g. `ns-train sked`, whose config names its flags; `words`: what followed the
+    command): one line on stderr, then exit status 2 as tyro's own."""
 
     def hook(event) -> None:
         try:
-            detail = describe(event, sorted(set(flags_of(config))) if config is not None else ())
+            detail = describe(event, CommandLine.of(config) if config is not None else None, words)
         except Exception:  # an event of another shape: tyro's own report is better than none
             return
         if detail is None:
@@ -136,13 +419,14 @@ def one_line_hook(command: str, config=None):
 def install_for_sked_train(methods, argv: Optional[Sequence[str]] = None) -> bool:
     """Make `ns-train <SKED method>`'s parse errors one line (`methods`: name -> MethodSpecification); nothing for
     any other process. True if installed."""
-    method = sked_train_method(sys.argv if argv is None else argv, methods)
+    argv = sys.argv if argv is None else argv
+    method = sked_train_method(argv, methods)
     if method is None:
         return False
     try:
         from tyro._errors import _parse_error_hook
     except ImportError:  # a tyro without the hook: its box stays
         return False
-    # Read when tyro.cli parses, later in this same context.
-    _parse_error_hook.set(one_line_hook(f"ns-train {method}", methods[method].config))
+    # Read when tyro.cli parses sys.argv, later in this same context.
+    _parse_error_hook.set(one_line_hook(f"ns-train {method}", methods[method].config, list(argv[2:])))
     return True

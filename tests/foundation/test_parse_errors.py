@@ -2,18 +2,25 @@
 
 from __future__ import annotations
 
+import dataclasses
+import os
+import re
 import shutil
 import subprocess
 import sys
 from pathlib import Path
+from typing import Literal, Tuple
 
 import pytest
+import tyro
 
 from sked_ns.engine import parse_errors
-from sked_ns.engine.parse_errors import close_flags, flags_of, sked_train_method
+from sked_ns.engine.parse_errors import CommandLine, close_flags, describe, flags_of, sked_train_method
 from sked_ns.session.methods import SESSION_METHODS
 
 tyro_errors = pytest.importorskip("tyro._errors", reason="a tyro without its parse-error hook keeps its box")
+
+SD, REFERENCE = "pipeline.model.guidance:stable-diffusion", "pipeline.model.guidance:reference"
 
 
 def test_only_an_ns_train_of_a_sked_method_is_recognised():
@@ -26,21 +33,33 @@ def test_only_an_ns_train_of_a_sked_method_is_recognised():
 
 
 @pytest.fixture(scope="module")
-def flags():
-    return sorted(set(flags_of(SESSION_METHODS["sked"].config)))
+def line():
+    return CommandLine.of(SESSION_METHODS["sked"].config)
 
 
-def test_the_flags_are_tyros_names_with_the_dataparser_after_its_subcommand(flags):
+@pytest.fixture(scope="module")
+def flags(line):
+    return sorted(set(line.flags))
+
+
+def test_the_flags_are_tyros_names_each_after_the_subcommand_it_follows(flags, line):
     assert {"--prompt", "--load-dir", "--max-num-iterations", "--pipeline.model.sketches",
-            "--pipeline.model.guidance.guidance-scale", "nerfstudio-data --downscale-factor"} <= set(flags)
+            f"{SD} --pipeline.model.guidance.guidance-scale", f"{REFERENCE} --pipeline.model.guidance.target",
+            "nerfstudio-data --downscale-factor", "--optimizers.fields.optimizer.lr"} <= set(flags)
+    assert sorted(set(flags_of(SESSION_METHODS["sked"].config))) == flags
     assert not [flag for flag in flags if flag.startswith("--pipeline.datamanager.dataparser.")]
     assert not [flag for flag in flags if "_" in flag]
+    # The base's architecture is hidden from tyro (copied from the base): offered nowhere, known as the base's.
+    assert "--pipeline.model.use-average-appearance-embedding" in line.hidden
+    assert not [flag for flag in flags if "use-average-appearance-embedding" in flag]
+    assert line.defaults == {"pipeline.model.guidance": SD, "dataparser": "nerfstudio-data"}
+    assert {SD, REFERENCE, "nerfstudio-data", "blender-data"} <= set(line.subcommands)
 
 
 @pytest.mark.parametrize("typed, meant", [
     ("--max-num-iteration", ["--max-num-iterations"]),
     ("--promt", ["--prompt"]),
-    ("--pipeline.model.guidance-scale", ["--pipeline.model.guidance.guidance-scale"]),
+    ("--pipeline.model.guidance-scale", [f"{SD} --pipeline.model.guidance.guidance-scale"]),
     ("--pipeline.model.sketch", ["--pipeline.model.sketches"]),
     ("--downscale-factor", ["nerfstudio-data --downscale-factor"]),
     ("--no-such-thing-at-all", []),
@@ -68,9 +87,119 @@ def test_each_kind_of_parse_error_is_one_line_and_unknown_kinds_fall_through(fla
     assert capsys.readouterr().err == ""
 
 
-def _ns_train(*argv):
+def _unrecognized(line, tokens, words):
+    return describe(tyro_errors.UnrecognizedArgs(prog="ns-train", tokens=tokens), line, words)
+
+
+@pytest.mark.parametrize("words, tokens, said", [
+    # A misspelt subcommand: the subcommands tyro offers in its group, the nearest first.
+    (["pipeline.model.guidance:refrence"], None, f"unknown subcommand pipeline.model.guidance:refrence (did you "
+                                                 f"mean {REFERENCE}?); the guidance subcommands are {SD}, {REFERENCE}"),
+    (["pipeline.model.guidanc:reference"], None, f"unknown subcommand pipeline.model.guidanc:reference "
+                                                 f"(did you mean {REFERENCE}?)"),
+    (["nerfstudio-dat"], None, "unknown subcommand nerfstudio-dat (did you mean nerfstudio-data?)"),
+    ([REFERENCE, SD], [SD], f"{SD}: {REFERENCE} was already given (one guidance at a time)"),
+    # A word processor's dash, an en dash, one hyphen: the flag with two ASCII hyphens.
+    (["\u2014prompt", "a hat"], None, "\u2014prompt begins with a typographic dash (em dash, what word processors "
+                                      "make of --): type --prompt (two ASCII hyphens)"),
+    (["\u2013prompt=a hat"], None, "\u2013prompt begins with a typographic dash (en dash, what word processors "
+                                   "make of --): type --prompt (two ASCII hyphens)"),
+    (["\u2014promt", "a hat"], None, "\u2014promt begins with a typographic dash (em dash, what word processors "
+                                     "make of --), not two ASCII hyphens (did you mean --prompt?)"),
+    (["-prompt", "x"], None, "-prompt begins with one hyphen: type --prompt (two ASCII hyphens)"),
+    # A guidance's setting where that guidance is not the one chosen, or before it is named.
+    ([REFERENCE, "--pipeline.model.guidance.guidance-scale", "5"], ["--pipeline.model.guidance.guidance-scale", "5"],
+     f"the guidance {REFERENCE} has no setting --pipeline.model.guidance.guidance-scale (a setting of {SD}, the "
+     "default guidance); its settings are --pipeline.model.guidance.target, --pipeline.model.guidance.weight, "
+     "--pipeline.model.guidance.sampling"),
+    (["--pipeline.model.guidance.guidance-scale", "5"], None,
+     f"--pipeline.model.guidance.guidance-scale is a setting of {SD}, the default guidance: name the guidance "
+     f"before it ({SD} --pipeline.model.guidance.guidance-scale ...)"),
+    (["--pipeline.model.guidance.target", "vase", REFERENCE], ["--pipeline.model.guidance.target", "vase"],
+     f"--pipeline.model.guidance.target at that place: it goes right after {REFERENCE}, before the dataparser's name"),
+    # Options of the dataparser before its name, of the edit after a subcommand, of the base.
+    (["--downscale-factor", "2"], None,
+     "--downscale-factor is an option of the dataparser: it goes after its name (nerfstudio-data --downscale-factor ...)"),
+    (["--pipeline.model.use-average-appearance-embedding", "False"], None,
+     "--pipeline.model.use-average-appearance-embedding is the base's: an edit keeps its base's model settings "
+     "(train the base with it instead)"),
+    (["--pipeline.model.base-kept", "x"], None, "--pipeline.model.base-kept is not an option: the edit sets it itself"),
+    # A flag whose value was left out took the next subcommand: what follows it is unrecognised for that alone.
+    (["--max-num-iterations", REFERENCE, "--pipeline.model.guidance.target", "vase"],
+     ["--pipeline.model.guidance.target", "vase"],
+     f"--max-num-iterations needs a value; it was followed by {REFERENCE}, which it took as its value"),
+    (["--prompt=a", REFERENCE, "--pipeline.model.guidance.target", "vase"], ["--pipeline.model.guidance.target", "vase"],
+     f"--pipeline.model.guidance.target at that place: it goes right after {REFERENCE}, before the dataparser's name"),
+    (["--promt", "x", "--max-num-iteration", "3"], None,
+     "unrecognized options --promt --max-num-iteration (did you mean --prompt or --max-num-iterations?)"),
+])
+def test_an_unrecognized_word_says_what_it_was_and_what_to_type(line, words, tokens, said):
+    assert _unrecognized(line, tokens or words, words) == said
+
+
+@dataclasses.dataclass
+class Small:
+    """Each kind of value a flag of `ns-train sked` takes, parsed by tyro as nerfstudio's `ns-train` has it."""
+
+    steps: int = 1
+    device: Literal["cpu", "cuda", "mps"] = "cpu"
+    sampling: Literal["as-rendered", "pixel-centre"] = "as-rendered"
+    compile: bool = True
+    azimuth: Tuple[float, float] = (0.0, 360.0)
+
+
+class _Stop(Exception):
+    pass
+
+
+@dataclasses.dataclass
+class WithFixed:
+    kept: tyro.conf.Fixed[int] = 3
+
+
+def _event(words, config=tyro.conf.FlagConversionOff[Small]):
+    """The event tyro fires for `words` (given after `ns-train sked`) on `Small`'s flags."""
+
+    def stop(event):
+        raise _Stop(event)
+
+    with pytest.raises(_Stop) as stopped, tyro_errors.on_parse_error(stop):
+        tyro.cli(config, args=list(words))
+    return stopped.value.args[0]
+
+
+@pytest.mark.parametrize("words, said", [
+    # A flag whose value was left out swallows the next word, or is followed by a flag or nothing.
+    (["--steps", REFERENCE], f"--steps needs a value (an integer); it was followed by {REFERENCE}"),
+    (["--steps", "nerfstudio-data"], "--steps needs a value (an integer); it was followed by nerfstudio-data"),
+    (["--steps=", "--device", "cpu"], "--steps needs a value (an integer); none was given"),
+    (["--steps", "--device", "cpu"], "--steps needs a value (an integer); it was followed by --device"),
+    (["--device", "--steps", "3"], "--device needs a value (one of cpu, cuda, mps); it was followed by --steps"),
+    (["--compile", REFERENCE], f"--compile needs a value (True or False); it was followed by {REFERENCE}"),
+    (["--steps"], "--steps needs a value (an integer); none was given"),
+    (["--azimuth", "10"], "--azimuth needs 2 values (2 numbers); it was given only 10"),
+    (["--azimuth", "10", "--steps", "3"], "--azimuth needs 2 values (2 numbers); it was given only 10, then --steps"),
+    # A value the flag does not read: what it takes, and the choice it likely meant.
+    (["--steps", "3.5"], "--steps takes an integer, not '3.5'"),
+    (["--azimuth", "10", "east"], "--azimuth takes 2 numbers, not '10 east'"),
+    (["--compile", "maybe"], "--compile takes True or False, not 'maybe'"),
+    (["--compile", "true"], "--compile takes True or False, not 'true' (did you mean True?)"),
+    (["--device", "cdua"], "--device takes one of cpu, cuda, mps, not 'cdua' (did you mean cuda?)"),
+    (["--device", "tpu"], "--device takes one of cpu, cuda, mps, not 'tpu'"),
+    (["--sampling", "centre"], "--sampling takes one of as-rendered, pixel-centre, not 'centre' "
+                               "(did you mean pixel-centre?)"),
+])
+def test_a_bad_value_says_what_the_flag_takes_and_what_followed_it(line, words, said):
+    assert describe(_event(words), line, words) == said
+
+
+def test_a_value_for_a_fixed_flag_is_named():
+    assert describe(_event(["--kept", "5"], WithFixed)) == "--kept is fixed and takes no value: leave out '5' after it"
+
+
+def _ns_train(*argv, **env):
     program = shutil.which("ns-train", path=str(Path(sys.executable).parent)) or shutil.which("ns-train")
-    return subprocess.run([program, *argv], capture_output=True, text=True, timeout=300)
+    return subprocess.run([program, *argv], capture_output=True, text=True, timeout=300, env={**os.environ, **env})
 
 
 def _own_lines(stderr: str) -> list:
@@ -86,7 +215,31 @@ def test_ns_train_sked_says_a_parse_error_in_one_line_and_other_methods_keep_tyr
                                          "mean --max-num-iterations?) (see ns-train sked --help)."], result.stderr
     result = _ns_train("sked", "--machine.device-type", "tpu")
     assert result.returncode == 2 and len(_own_lines(result.stderr)) == 1, result.stderr
-    assert "--machine.device-type: invalid choice 'tpu'" in result.stderr
+    assert "--machine.device-type takes one of cpu, cuda, mps, not 'tpu'" in result.stderr
     stock = _ns_train("nerfacto", "--max-num-iteration", "3")  # the plugin changes nothing outside SKED
     assert stock.returncode == 2 and "error: ns-train" not in stock.stderr
     assert "Unrecognized options" in stock.stderr and "╭" in stock.stderr
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("argv, said", [
+    (["--max-num-iterations", REFERENCE, "--pipeline.model.guidance.target", "vase"],
+     f"--max-num-iterations needs a value; it was followed by {REFERENCE}, which it took as its value"),
+    (["--max-num-iterations", REFERENCE], f"--max-num-iterations needs a value (an integer); it was followed by {REFERENCE}"),
+    (["pipeline.model.guidance:refrence"], f"did you mean {REFERENCE}?"),
+    (["\u2014prompt", "a hat"], "type --prompt (two ASCII hyphens)"),
+    ([REFERENCE, "--pipeline.model.guidance.guidance-scale", "5"],
+     f"the guidance {REFERENCE} has no setting --pipeline.model.guidance.guidance-scale"),
+])
+def test_ns_train_sked_says_what_was_typed_wrong_and_what_to_type(argv, said):
+    result = _ns_train("sked", *argv)
+    assert result.returncode == 2
+    assert len(_own_lines(result.stderr)) == 1 and said in result.stderr, result.stderr
+
+
+@pytest.mark.slow
+def test_the_flags_read_from_the_config_are_those_ns_train_sked_lists(line):
+    listed = _ns_train("sked", "--help", COLUMNS="400")
+    assert listed.returncode == 0, listed.stderr
+    shown = {flag.rstrip(".") for flag in re.findall(r"(?<![\w.-])--[a-z][\w.-]*", listed.stdout)} - {"--help"}
+    assert shown == {flag for flag in line.flags if " " not in flag}
