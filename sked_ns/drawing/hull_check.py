@@ -30,8 +30,9 @@ import numpy as np
 import torch
 from scipy.ndimage import binary_closing
 
-from sked_ns.method.edit_box import EditBox, compute_edit_box, sketch_direction
+from sked_ns.method.edit_box import EditBox, compute_edit_box
 from sked_ns.method.preservation import SketchDistanceField
+from sked_ns.sketches.placement import sketch_direction
 from sked_ns.sketches.sketch_set import SketchView
 
 HULL_RATIO_WARN = 3.0

@@ -19,11 +19,16 @@ from scipy.optimize import linprog
 from torch import Tensor
 
 from sked_ns.errors import SkedUserError
-from sked_ns.sketches.cameras import pixel_directions
+from sked_ns.sketches.placement import (
+    check_camera_placement,
+    frusta_meet,
+    frustum_halfspaces,
+    meeting_point,
+    sketch_direction,
+    view_label,
+)
 from sked_ns.sketches.sketch_set import SketchView
 
-# Frusta start this far in front of each camera (scene units).
-NEAR = 1e-3
 SAME_VIEW_DEG = 1.0
 """Two views whose rays to their sketches are closer than this are the same view twice."""
 MIN_BASELINE_DEG = 5.0
@@ -56,26 +61,6 @@ def in_box(points: Tensor, bounds: Tensor) -> Tensor:
     return ((points >= bounds[0]) & (points <= bounds[1])).all(dim=-1)
 
 
-def frustum_halfspaces(view: SketchView) -> tuple[np.ndarray, np.ndarray]:
-    """Half-spaces A p <= b whose intersection is the frustum of the view's mask bounding box."""
-    u0, v0, u1, v1 = view.bounding_box()
-    pose = torch.as_tensor(view.camera_to_world, dtype=torch.float64)
-    corners = torch.tensor([[u0, v0], [u1, v0], [u1, v1], [u0, v1]], dtype=torch.float64)
-    rays = pixel_directions(corners, pose, torch.as_tensor(view.intrinsics)).numpy()
-    centre_ray = rays.mean(axis=0)
-    origin = view.camera_to_world[:, 3]
-    normals = []
-    for a, b in zip(rays, np.roll(rays, -1, axis=0)):
-        normal = np.cross(a, b)
-        normals.append(normal if normal @ centre_ray < 0 else -normal)  # outward
-    forward = -view.camera_to_world[:, 2]
-    normals.append(-forward)  # in front of the near plane
-    normals = np.stack(normals)
-    offsets = normals @ origin
-    offsets[-1] -= NEAR
-    return normals, offsets
-
-
 def _bounds(halfspaces: Sequence[tuple[np.ndarray, np.ndarray]], scene_box: Optional[np.ndarray]):
     a_ub = np.concatenate([a for a, _ in halfspaces])
     b_ub = np.concatenate([b for _, b in halfspaces])
@@ -92,40 +77,26 @@ def _bounds(halfspaces: Sequence[tuple[np.ndarray, np.ndarray]], scene_box: Opti
     return low, high, status
 
 
-def _feasible(halfspaces, scene_box) -> bool:
-    a_ub = np.concatenate([a for a, _ in halfspaces])
-    b_ub = np.concatenate([b for _, b in halfspaces])
-    bounds = [(None, None)] * 3 if scene_box is None else list(zip(scene_box[0], scene_box[1]))
-    return linprog(np.zeros(3), A_ub=a_ub, b_ub=b_ub, bounds=bounds, method="highs").status != 2
-
-
-def sketch_direction(view: SketchView) -> np.ndarray:
-    """Unit direction from the camera to the centre of its sketch's bounding box."""
-    u0, v0, u1, v1 = view.bounding_box()
-    centre = torch.tensor([[(u0 + u1) / 2, (v0 + v1) / 2]], dtype=torch.float64)
-    ray = pixel_directions(centre, torch.as_tensor(view.camera_to_world, dtype=torch.float64),
-                           torch.as_tensor(view.intrinsics)).numpy()[0]
-    return ray / np.linalg.norm(ray)
-
-
 def check_view_baselines(views: Sequence[SketchView]) -> float:
-    """The widest angle (degrees) between two views' rays to their sketches: depth comes from it alone.
+    """The widest angle (degrees) between two views' lines of sight to their sketches: depth comes from it alone.
 
-    The same view twice, or views all within MIN_BASELINE_DEG, are refused (the edit box would run out to the
-    scene's bounds); all within WIDE_BASELINE_DEG is warned."""
+    The same view twice, or lines of sight all within MIN_BASELINE_DEG of one line (from one side or from opposite
+    sides: frusta facing each other meet all along it), are refused (the edit box would run out to the scene's
+    bounds); all within WIDE_BASELINE_DEG is warned."""
     directions = [sketch_direction(view) for view in views]
-    name = lambda i: views[i].name or f"view {i}"  # noqa: E731
-    angles = {(i, j): float(np.degrees(np.arccos(np.clip(directions[i] @ directions[j], -1.0, 1.0))))
-              for i, j in combinations(range(len(views)), 2)}
-    same = [f"{name(i)} and {name(j)}" for (i, j), angle in angles.items() if angle < SAME_VIEW_DEG]
+    name = lambda i: view_label(views, i)  # noqa: E731
+    cosines = {(i, j): float(np.clip(directions[i] @ directions[j], -1.0, 1.0))
+               for i, j in combinations(range(len(views)), 2)}
+    same = [f"{name(i)} and {name(j)}" for (i, j), cosine in cosines.items() if np.degrees(np.arccos(cosine)) < SAME_VIEW_DEG]
     if same:
         raise SkedUserError(f"The same sketch view twice ({'; '.join(same)}: their rays to the sketch are under "
                          f"{SAME_VIEW_DEG:g} degree apart), which cannot place the edit in depth. Remove the copy and "
                          f"sketch the region from a second viewpoint at least {WIDE_BASELINE_DEG:g} degrees away.")
-    widest = max(angles.values())
-    message = (f"The sketch views are at most {widest:.1f} degrees apart ({', '.join(map(name, range(len(views))))}): "
-               "they look along nearly the same line, so the edit's depth is barely bounded and the edit box stretches "
-               f"towards the scene's bounds. Sketch from viewpoints at least {WIDE_BASELINE_DEG:g} degrees apart.")
+    widest = max(float(np.degrees(np.arccos(abs(cosine)))) for cosine in cosines.values())
+    message = (f"The sketch views' lines of sight are at most {widest:.1f} degrees apart ({', '.join(map(name, range(len(views))))}): "
+               "they look along nearly the same line (from one side, or across from each other), so the edit's depth is "
+               "barely bounded and the edit box stretches towards the scene's bounds. Sketch from viewpoints at least "
+               f"{WIDE_BASELINE_DEG:g} degrees apart and as far from straight across from each other.")
     if widest < MIN_BASELINE_DEG:
         raise SkedUserError(message)
     if widest < WIDE_BASELINE_DEG:
@@ -134,34 +105,47 @@ def check_view_baselines(views: Sequence[SketchView]) -> float:
 
 
 def refuse_apart(views: Sequence[SketchView], halfspaces, scene_box: Optional[np.ndarray]) -> None:
-    """The sketches meet nowhere (inside the scene box, if given): say which views do not."""
+    """The sketches meet nowhere (inside the scene box, if given): say which views do not, and whether they meet
+    outside the scene's box (poses read in the wrong frame, or a region outside the scene) or nowhere at all (the
+    masks disagree: no frame mends that, as frames differ by a rotation, shift and scale)."""
+    if scene_box is not None and frusta_meet(halfspaces):
+        low, high = np.round(scene_box, 2).tolist()
+        raise SkedUserError(
+            f"The sketches meet only outside the scene's box (around {np.round(meeting_point(views), 2).tolist()}; "
+            f"the box spans {low} to {high}). Check that sketches.json's \"frame\" says where its poses come from "
+            "(\"data\": the base's transforms.json; \"model\": nerfstudio's viewer), and that the masks outline a "
+            "region of this scene.")
     apart = [
-        f"{views[i].name or i} and {views[j].name or j}"
+        f"{view_label(views, i)} and {view_label(views, j)}"
         for i, j in combinations(range(len(views)), 2)
-        if not _feasible([halfspaces[i], halfspaces[j]], scene_box)
+        if not frusta_meet([halfspaces[i], halfspaces[j]], scene_box)
     ]
     detail = "; ".join(apart) if apart else "no single region lies inside every view's sketch"
     raise SkedUserError(
         f"The sketches do not intersect in 3D ({detail}). Each mask must cover the same region seen "
-        "from its own viewpoint: check the masks and that the poses are in the stated 'frame'."
+        "from its own viewpoint: check that every mask outlines the same region."
     )
 
 
 def check_sketches_meet(views: Sequence[SketchView]) -> None:
-    """What compute_edit_box refuses whatever the scene's bounds: views that cannot place the edit in depth, and
-    sketches that meet nowhere (for a set saved without its scene)."""
+    """What compute_edit_box refuses whatever the scene's bounds: cameras inside the sketched region or facing away
+    from it, views that cannot place the edit in depth, and sketches that meet nowhere (for a set saved without its
+    scene)."""
+    check_camera_placement(views)
     check_view_baselines(views)
     halfspaces = [frustum_halfspaces(view) for view in views]
-    if not _feasible(halfspaces, None):
+    if not frusta_meet(halfspaces):
         refuse_apart(views, halfspaces, None)
 
 
 def compute_edit_box(views: Sequence[SketchView], scene_box: Optional[np.ndarray] = None) -> EditBox:
     """Axis-aligned box around the intersection of the views' mask-box frusta.
 
-    `scene_box` ([[x0, y0, z0], [x1, y1, z1]]) clips the result. Views that cannot bound the
-    region's depth (the same view twice, near-parallel views) are an error (check_view_baselines).
+    `scene_box` ([[x0, y0, z0], [x1, y1, z1]]) clips the result. Cameras inside the sketched region or facing away
+    from it (check_camera_placement) and views that cannot bound the region's depth (the same view twice,
+    near-parallel views: check_view_baselines) are an error.
     """
+    check_camera_placement(views)
     check_view_baselines(views)
     halfspaces = [frustum_halfspaces(view) for view in views]
     scene_box = None if scene_box is None else np.asarray(scene_box, dtype=np.float64)
@@ -170,8 +154,9 @@ def compute_edit_box(views: Sequence[SketchView], scene_box: Optional[np.ndarray
         refuse_apart(views, halfspaces, scene_box)
     if any(s != 0 for s in status):
         raise SkedUserError(
-            "The sketch frusta meet in an unbounded region (the views look along nearly the same line). "
-            "Sketch from viewpoints further apart, or give the scene box to clip to."
+            "The sketch frusta meet in an unbounded region: some line of sight lies inside every sketch, as the "
+            "sketches are wider than the angles between the views. Sketch from viewpoints further apart, or outline "
+            "the region more tightly."
         )
     return EditBox(min=low, max=high)
 

@@ -187,37 +187,6 @@ def sketch_view_at(view: SketchView, resolution: int) -> Tuple[Cameras, torch.Te
     return camera, torch.from_numpy(mask)
 
 
-FRAME_MISFIT = math.log(2.0)
-"""Sketch cameras over 2x nearer or farther from the scene centre than the training cameras do not fit a frame..."""
-FRAME_FIT = math.log(1.5)
-"""...and they fit it within 1.5x: the dataparser's scale (0.43 for the demo) tells the two frames apart."""
-
-
-def frame_misfit(sketch_set: SketchSet, training_positions: np.ndarray, centre: np.ndarray) -> float:
-    """How far the sketch cameras are from the training cameras' distance to the scene centre (model frame):
-    the largest |log(ratio)| over views, 0 when every sketch camera is as far as a typical training camera."""
-    typical = float(np.median(np.linalg.norm(training_positions - centre, axis=1)))
-    distances = np.array([np.linalg.norm(view.camera_to_world[:, 3] - centre) for view in sketch_set.views])
-    return float(np.abs(np.log(np.maximum(distances, 1e-12) / max(typical, 1e-12))).max())
-
-
-def check_declared_frame(sketch_set: SketchSet, transform: DataparserTransform, training_positions: np.ndarray,
-                         centre: np.ndarray, json_path: Path) -> None:
-    """Refuse a sketch set whose cameras fit the training cameras only when read in the other frame (poses
-    copied from transforms.json but declared "model", or from the viewer but declared "data"): the edit box
-    would be scaled and shifted by the dataparser's transform, silently."""
-    other = "model" if sketch_set.frame == "data" else "data"
-    as_declared = sketch_set.in_model_frame(transform)
-    as_other = replace(sketch_set, frame=other).in_model_frame(transform)
-    declared, alternative = (frame_misfit(s, training_positions, centre) for s in (as_declared, as_other))
-    if declared > FRAME_MISFIT and alternative < FRAME_FIT:
-        raise SkedUserError(
-            f"{json_path}: \"frame\": \"{sketch_set.frame}\", but read so its cameras are up to "
-            f"{math.exp(declared):.1f}x nearer or farther from the scene than the base's training cameras; read as "
-            f"\"{other}\" they are within {math.exp(alternative):.2f}x. Set \"frame\": \"{other}\" in {json_path.name} "
-            "(\"data\": poses copied from the base's transforms.json; \"model\": poses from nerfstudio's viewer).")
-
-
 def fill_scribbles(mask: np.ndarray) -> np.ndarray:
     """Fill every closed stroke; a filled blob stays as it is."""
     contours, _ = cv2.findContours(mask.astype(np.uint8), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)

@@ -12,8 +12,8 @@ from scipy.ndimage import binary_closing, binary_fill_holes
 from sked_ns.demo.scenes.sphere import orbit_pose
 from sked_ns.drawing.hull_check import HULL_RATIO_WARN, check_hull, silhouette_area
 from sked_ns.errors import SkedUserError
-from sked_ns.method.edit_box import sketch_direction
 from sked_ns.sketches.cameras import project
+from sked_ns.sketches.placement import sketch_direction
 from sked_ns.sketches.sketch_set import SketchSet, SketchView, save_sketch_set
 
 SIZE, FOCAL, RADIUS = 64, 75.0, 3.0

@@ -110,3 +110,41 @@ def test_occupancy_mask_uses_nerfacc_layout(resolution, levels):
         assert torch.equal(mask[level].reshape(-1), overlaps)
         assert overlaps.any()
     estimator.binaries |= mask  # drops straight into the estimator
+
+
+def test_views_across_from_each_other_are_refused_as_one_line_and_a_turned_view_passes():
+    scene_box = np.array([[-1.0] * 3, [1.0] * 3])
+    front = _cube_view(0, 10, (0, 0, 0), 0.02, name="front")
+    across = _cube_view(177, -10, (0, 0, 0), 0.02, name="across")  # frusta facing each other meet all along the line
+    with pytest.raises(ValueError, match=r"lines of sight are at most 3\.0 degrees apart.*across from each other"):
+        compute_edit_box([front, across], scene_box=scene_box)
+    assert compute_edit_box([front, _cube_view(90, 10, (0, 0, 0), 0.02)], scene_box=scene_box).size.max() < 0.1
+
+
+def test_poses_with_opencv_axes_are_named_as_facing_away_and_opengl_ones_pass():
+    views = [_cube_view(a, e, (0, 0, 0), 0.1, name=f"v{a}") for a, e in [(0, 10), (80, 25)]]
+    flipped = [SketchView(v.mask, v.camera_to_world @ np.diag([1.0, -1.0, -1.0, 1.0]), v.fl_x, v.fl_y, v.cx, v.cy,
+                          name=v.name) for v in views]  # the frame was never the trouble: it was blamed
+    with pytest.raises(ValueError, match=r"v0 and v80: the cameras are facing away from the sketched region.*OpenGL"):
+        compute_edit_box(flipped)
+    assert compute_edit_box(views).contains(torch.zeros(1, 3)).all()
+
+
+def test_sketches_meeting_outside_the_scene_box_say_so_and_the_right_frame_passes():
+    scene_box = np.array([[-1.0] * 3, [1.0] * 3])
+    views = [_cube_view(a, e, (0, 0, 0), 0.1, name=f"v{a}") for a, e in [(0, 10), (80, 25)]]
+    # Poses read in a frame 3x too large and shifted: the sketches meet, but away from the scene.
+    far = [SketchView(v.mask, np.concatenate([v.camera_to_world[:, :3], 3 * v.camera_to_world[:, 3:] + 4.0], axis=1),
+                      v.fl_x, v.fl_y, v.cx, v.cy, name=v.name) for v in views]
+    with pytest.raises(ValueError, match=r"meet only outside the scene's box \(around \[4\.0, 4\.0, 4\.0\].*\"frame\""):
+        compute_edit_box(far, scene_box=scene_box)
+    assert compute_edit_box(far).contains(torch.tensor([[4.0, 4.0, 4.0]], dtype=torch.float64)).all()
+    compute_edit_box(views, scene_box=scene_box)
+
+
+def test_sketches_too_wide_to_bound_the_region_say_so_and_tighter_ones_pass():
+    wide = [_cube_view(a, 10, (0, 0, 0), 0.1, name=f"v{a}") for a in (0, 20)]
+    wide = [SketchView(np.ones_like(v.mask), v.camera_to_world, v.fl_x, v.fl_y, v.cx, v.cy, name=v.name) for v in wide]
+    with pytest.raises(ValueError, match=r"unbounded region.*outline the region more tightly"):
+        compute_edit_box(wide)
+    compute_edit_box([_cube_view(a, 10, (0, 0, 0), 0.1) for a in (0, 20)])

@@ -303,7 +303,7 @@ def test_a_sketch_set_declared_in_the_wrong_frame_is_refused_naming_the_field_an
 
 def test_a_frame_is_not_second_guessed_where_both_readings_fit(rng):
     from sked_ns.demo.scenes import sphere as scene
-    from sked_ns.sketches.sketch_set import check_declared_frame
+    from sked_ns.sketches.data_frame import check_declared_frame
 
     _, positions, centre = _demo_frame()
     demo = scene.demo_sketch_set(size=64)
