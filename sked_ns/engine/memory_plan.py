@@ -14,6 +14,7 @@ A model of what benchmarks/memory.py measures (docs/benchmarks.md, Memory), part
 The step's peak is the larger of the NeRF side's own peak and what it holds when the guidance runs
 plus the guidance's step. The coefficients below are benchmarks/memory.py's measurements (fp32, CPU,
 torch hash grids) divided out; tests/engine/test_memory_plan.py checks the plan against its results file.
+The plan also says roughly how long a step will take there (engine/step_time.py), from the same work.
 """
 
 from __future__ import annotations
@@ -26,6 +27,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Dict, List, Optional, Tuple
 
+from sked_ns.engine.step_time import StepTime, slow_step_warning, step_time
 from sked_ns.errors import SkedUserError, warn
 from sked_ns.guide import guide
 from sked_ns.models.registry import representation_named, representation_of
@@ -92,6 +94,8 @@ class MemoryPlan:
     sd_step: float = 0.0
     sd_device: Optional[str] = None
     """Where Stable Diffusion runs when not on `device` (--pipeline.model.guidance.device)."""
+    step_time: Optional[StepTime] = None
+    """How long a step is expected to take, where a step was measured on this device kind."""
 
     @property
     def peak(self) -> float:
@@ -158,6 +162,13 @@ def step_work(options, datamanager, representation: str) -> StepWork:
     masked = float(sum(int(sketch_view_at(view, options.silhouette_resolution)[1].sum()) for view in views))
     return StepWork(random_view, masked + (datamanager.train_num_rays_per_batch if photos else 0), scale,
                     max(int(options.field_chunk), 0))
+
+
+def field_samples(representation: str, work: StepWork) -> Optional[float]:
+    """The NeRF field samples a step renders with gradients; None for a representation that renders cameras."""
+    if representation_named(representation).renders == "cameras":
+        return None
+    return (work.rays + work.sketch_rays) * STEP_MODELS[representation].samples_per_ray * work.sample_scale
 
 
 def nerf_side(representation: str, work: StepWork, base_bytes: float) -> Tuple[float, float]:
@@ -237,6 +248,7 @@ def resident_bytes(representation: str, base_bytes: float, options) -> float:
 
 def plan_edit(config) -> MemoryPlan:
     """The plan of an edit's config, after resolve_edit filled it in from the base."""
+    from sked_ns.guidance.stable_diffusion import StableDiffusionGuidanceConfig
     from sked_ns.method.frozen_base import base_weights
     from sked_ns.method.options import is_carving
 
@@ -244,14 +256,19 @@ def plan_edit(config) -> MemoryPlan:
     representation = representation_of(options).name  # resolve_edit refused any other kind of base
     device = machine.device_type if machine.device_type != "cuda" else "cuda:0"
     weights = checkpoint_weight_bytes(base_weights(options))
-    step, held = nerf_side(representation, step_work(options, config.pipeline.datamanager, representation), weights)
+    work = step_work(options, config.pipeline.datamanager, representation)
+    step, held = nerf_side(representation, work, weights)
     plan = MemoryPlan(device=device, resident=resident_bytes(representation, weights, options), nerf_step=step,
                       held_at_guidance=held)
+    sd_size = sd_device_type = None
     if not is_carving(options):
         plan.sd_weights, plan.sd_step = sd_bytes(options.guidance, machine.device_type)
         sd_device = getattr(options.guidance, "device", None)
         if sd_device and sd_device != device and not (sd_device == "cuda" and device == "cuda:0"):
             plan.sd_device = sd_device
+        if isinstance(options.guidance, StableDiffusionGuidanceConfig):
+            sd_size, sd_device_type = options.guidance.image_size, (sd_device or machine.device_type).split(":")[0]
+    plan.step_time = step_time(machine.device_type, field_samples(representation, work), sd_size, sd_device_type)
     return plan
 
 
@@ -348,10 +365,22 @@ def choose_field_chunk(config, free: Optional[float]) -> int:
     return CHECKPOINTED_FIELD_CHUNK
 
 
+def warn_idle_mixed_precision(config, argv=None) -> None:
+    """--mixed-precision True typed for a CPU edit: nerfstudio trains in fp32 there without a word (the presets'
+    own True is for the GPU and is not warned)."""
+    from sked_ns.engine.resume import command_line_paths
+
+    if config.mixed_precision and config.machine.device_type == "cpu" and \
+            "mixed_precision" in command_line_paths(config, argv):
+        warn("--mixed-precision True: has no effect on the CPU, where nerfstudio trains in fp32 (it halves the "
+             "guidance's memory and time on a GPU only).")
+
+
 def check_memory(config) -> MemoryPlan:
-    """Choose the field chunk where the config leaves it to the plan; print the plan once; refuse, before anything
-    is written, an edit that cannot fit in the CUDA device's free memory (a CPU edit: available memory and swap),
-    naming the options that would; warn a CPU edit that would swap."""
+    """Choose the field chunk where the config leaves it to the plan; print the plan (and the step's expected time)
+    once; refuse, before anything is written, an edit that cannot fit in the CUDA device's free memory (a CPU edit:
+    available memory and swap), naming the options that would; warn a CPU edit that would swap, a step expected to
+    take minutes, and mixed precision typed for the CPU."""
     from sked_ns.method.options import AUTO_FIELD_CHUNK
 
     options = config.pipeline.model
@@ -366,9 +395,12 @@ def check_memory(config) -> MemoryPlan:
     if chosen is not None:
         line += ("; fields unchunked (the step fits)" if chosen == 0 else
                  f"; fields in checkpointed chunks of {chosen} samples (an unchunked step would not fit)")
+    line += f" (model: {guide('benchmarks.md')}, Memory)"
+    if plan.step_time is not None:
+        line += "\n" + plan.step_time.line(plan.device, config.max_num_iterations)
     if line not in _PRINTED:
         _PRINTED.add(line)
-        print(line + f" (model: {guide('benchmarks.md')}, Memory)", flush=True)
+        print(line, flush=True)
     free = _free_bytes(plan.device)
     on_cpu = plan.device == "cpu"
     limit = free + _free_swap_bytes() if free is not None and on_cpu else free
@@ -385,4 +417,8 @@ def check_memory(config) -> MemoryPlan:
     if on_cpu and free is not None and plan.peak > free:
         warn(f"this edit needs about {plan.peak / GB:.1f} GB, more than the {free / GB:.1f} GB of memory available "
              "now: it will swap, and run many times slower.")
+    slow = plan.step_time and slow_step_warning(plan.step_time, config.machine.device_type)
+    if slow:
+        warn(slow)
+    warn_idle_mixed_precision(config)
     return plan

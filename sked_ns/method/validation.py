@@ -2,17 +2,20 @@
 
 A setting outside its legal range (a negative loss weight, a resolution of 0) would run and silently
 wreck the edit, or fail deep inside with a shape error; one that is legal but almost surely a mistake
-(a guidance render far larger than the paper's 128) gets a warning. `check_options` runs when
-`ns-train sked` resolves its config (trainer.resolve_edit), `check_sketch_pixels` once the sketch set
-is known (model set-up).
+(a guidance render far larger than the paper's 128, a loss weight or learning rate orders of magnitude off:
+USUAL_RANGES) gets a warning. `check_options` runs when `ns-train sked` resolves its config
+(trainer.resolve_edit), `check_optimizers` with the edit's other inputs once its optimisers are known
+(engine/edit_inputs.py), `check_sketch_pixels` once the sketch set is known (model set-up).
 """
 
 from __future__ import annotations
 
 import math
-from typing import List
+from dataclasses import dataclass, fields
+from typing import Dict, List, Optional
 
 from sked_ns.errors import DATAMANAGER_FLAGS, flag, is_number, refuse, warn_option
+from sked_ns.method.options import SkedOptions
 
 LOSS_WEIGHTS = ("lambda_pres", "lambda_colour", "lambda_sil", "lambda_sp", "lambda_new_mass", "lambda_carve",
                 "lambda_photo")
@@ -28,6 +31,50 @@ SMALL_PROPOSAL_GRID = 32
 """Base proposal grids coarser than this (cells a side) are warned: they blur the base's surfaces."""
 MAX_SEEDS = 10_000_000
 """New Gaussians a splat edit may start with: more than most whole scenes hold (each is 708 bytes with Adam's)."""
+
+
+@dataclass(frozen=True)
+class UsualRange:
+    """Where a legal value is meant: outside [low, high] it is almost surely a typo or a wrong unit, warned with why."""
+
+    low: float
+    high: float
+    below: str
+    above: str
+
+
+USUAL_RANGES: Dict[str, UsualRange] = {
+    # The objective sums means of order 1 (per pixel, per sample) with the guidance's, weighted 1 (method/edit.py).
+    "loss_weight": UsualRange(
+        1e-6, 100.0, "a term weighing under a millionth of the guidance changes nothing; 0 turns it off",
+        "each term is a mean of order 1 summed with the guidance's, weighted 1, so this one drowns every other"),
+    # Adam moves a weight by about its rate each step; an edit's weights (features, MLPs, Gaussians) are of order 1.
+    "learning_rate": UsualRange(
+        1e-7, 1.0, "Adam moves a weight by about its rate a step, so even 10,000 steps move it by under 1e-3",
+        "Adam moves a weight by about its rate a step, so each step jumps past the whole range of the weights"),
+    # A length in the scene box's units, which spans about 2.
+    "preservation_delta": UsualRange(
+        1e-4, 1.0, "so short a step turns no base density into occupancy: L_pres holds nothing as occupied",
+        "a step over half the scene's width makes any faint density fully occupied"),
+    # Times the seeds' mean spacing.
+    "seed_size": UsualRange(
+        0.1, 10.0, "seeds this far apart for their size start as separate dots the guidance sees through",
+        "each seed spans many of its neighbours: the hull starts as one blur far larger than itself"),
+}
+"""The usual range of each numeric knob whose extremes are legal: the one table of them."""
+
+
+def unusual(name: str, value, usual: UsualRange, default: Optional[float] = None) -> Optional[str]:
+    """The warning for VALUE of the flag NAME (as typed) outside USUAL, or None; 0, where legal, means off."""
+    if not is_number(value) or value == 0 or usual.low <= value <= usual.high:
+        return None
+    why = usual.below if value < usual.low else usual.above
+    said_default = f", default {default:g}" if default is not None else ""
+    return f"{name} {value:g}: {why} (usual {usual.low:g} to {usual.high:g}{said_default})."
+
+
+def _default(name: str) -> Optional[float]:
+    return next((option.default for option in fields(SkedOptions) if option.name == name), None)
 
 
 def _is_whole(value) -> bool:
@@ -155,6 +202,39 @@ def warn_unusual_options(options) -> List[str]:
     if options.splat_supersampling > 4:
         messages.append(f"{flag('splat_supersampling')} {options.splat_supersampling} (splat bases): each training "
                         f"render costs {options.splat_supersampling ** 2}x the pixels for little more than 2-4 give.")
+    for name in LOSS_WEIGHTS:
+        messages.append(unusual(flag(name), getattr(options, name), USUAL_RANGES["loss_weight"], _default(name)))
+    for name in ("preservation_delta", "seed_size"):
+        messages.append(unusual(flag(name), getattr(options, name), USUAL_RANGES[name], _default(name)))
+    messages = [message for message in messages if message]
+    for message in messages:
+        warn_option(message)
+    return messages
+
+
+def optimizer_problems(optimizers) -> List[str]:
+    """Learning rates out of range: torch's Adam would refuse a negative one only once the run folder is written."""
+    return [f"{name} {value!r}: a learning rate must be a finite number >= 0 (0 freezes the group)."
+            for name, value in _learning_rates(optimizers) if not (is_number(value) and value >= 0)]
+
+
+def _learning_rates(optimizers):
+    """(flag, value) of each optimiser group's learning rate and its schedule's final rate, as nerfstudio's flags."""
+    for group, settings in (optimizers or {}).items():
+        prefix = f"--optimizers.{group.replace('_', '-')}."
+        optimizer, scheduler = settings.get("optimizer"), settings.get("scheduler")
+        if optimizer is not None and hasattr(optimizer, "lr"):
+            yield prefix + "optimizer.lr", optimizer.lr
+        if getattr(scheduler, "lr_final", None) is not None:
+            yield prefix + "scheduler.lr-final", scheduler.lr_final
+
+
+def check_optimizers(optimizers) -> List[str]:
+    """Refuse a negative or non-finite learning rate; warn on one far outside USUAL_RANGES (the edit's
+    optimisers: the presets' NeRF groups, or a splat edit's)."""
+    refuse(optimizer_problems(optimizers))
+    messages = [unusual(name, value, USUAL_RANGES["learning_rate"]) for name, value in _learning_rates(optimizers)]
+    messages = [message for message in messages if message]
     for message in messages:
         warn_option(message)
     return messages

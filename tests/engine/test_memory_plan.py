@@ -10,7 +10,7 @@ import pytest
 import torch
 from tiny_sd import build_tiny_stable_diffusion
 
-from sked_ns.engine import memory_plan
+from sked_ns.engine import memory_plan, step_time
 from sked_ns.engine.memory_plan import GB, StepWork, nerf_side, sd_bytes
 from sked_ns.errors import SkedUserError
 from sked_ns.guidance.stable_diffusion import StableDiffusionGuidanceConfig
@@ -127,7 +127,9 @@ def test_an_edit_that_cannot_fit_is_refused_with_the_options_that_do(scene, tmp_
     config = _config(scene, tmp_path, guidance_resolution=128, silhouette_resolution=128)
     resolve_edit(config)
     plan = memory_plan.plan_edit(config)
-    assert plan.peak > 0 and "Expected peak memory on cpu" in capsys.readouterr().out
+    printed = capsys.readouterr().out
+    assert plan.peak > 0 and "Expected peak memory on cpu" in printed
+    assert f"Expected time per step on cpu: about {step_time.duration(plan.step_time.seconds)}" in printed
     small = memory_plan.plan_edit(_resolved(scene, tmp_path / "small", guidance_resolution=64,
                                             silhouette_resolution=64)).peak
     assert small < plan.peak
@@ -214,3 +216,96 @@ def _resolved_copy(config):
     config = copy.deepcopy(config)
     _resolve(config)
     return config
+
+
+def _reference_step_seconds(device, rays, sketch_rays, samples_per_ray, scale, sd_size):
+    """A step's expected seconds, written out: every field sample at the device's rate, plus SD's step scaled
+    by its input's area."""
+    speed = step_time.STEP_SPEEDS[device]
+    sd = speed.sd_step_at_512 * (sd_size / 512) ** 2 if sd_size else 0.0
+    return (rays + sketch_rays) * samples_per_ray * scale * speed.per_field_sample + sd
+
+
+@pytest.mark.parametrize("device", ["cpu", "cuda"])
+@pytest.mark.parametrize("representation", ["nerfacto", "instant-ngp"])
+@pytest.mark.parametrize("rays, sketch_rays, scale, sd_size", [
+    (128**2, 1854, 1.0, 512), (1024**2, 1854, 1.0, 512), (24**2, 100, 0.25, None), (64**2, 0, 1.5, 256)])
+def test_the_step_time_is_its_samples_and_its_guidance_at_the_devices_rates(device, representation, rays,
+                                                                          sketch_rays, scale, sd_size):
+    work = StepWork(float(rays), float(sketch_rays), scale)
+    samples = memory_plan.field_samples(representation, work)
+    time = step_time.step_time(device, samples, sd_size)
+    expected = _reference_step_seconds(device, rays, sketch_rays, memory_plan.STEP_MODELS[representation]
+                                       .samples_per_ray, scale, sd_size)
+    assert time.whole and time.seconds == pytest.approx(expected, rel=1e-9)
+
+
+def test_a_step_time_without_a_measured_rate_is_a_lower_bound_or_none():
+    splat = memory_plan.field_samples("splatfacto", StepWork(128.0**2))
+    assert splat is None  # no splat step measured per pixel: only the guidance's step counts
+    bound = step_time.step_time("cpu", splat, 512)
+    assert not bound.whole and bound.seconds == step_time.STEP_SPEEDS["cpu"].sd_step_at_512
+    assert step_time.step_time("cpu", splat, None) is None
+    assert step_time.step_time("mps", 1e6, 512) is None  # no step measured on an Apple GPU
+    # Stable Diffusion on another device is timed at that device's rate.
+    on_gpu = step_time.step_time("cpu", 1e6, 512, sd_device_type="cuda")
+    assert on_gpu.seconds == pytest.approx(1e6 * step_time.STEP_SPEEDS["cpu"].per_field_sample
+                                           + step_time.STEP_SPEEDS["cuda"].sd_step_at_512)
+
+
+def test_the_cpu_rates_are_the_measured_full_size_step():
+    """STEP_SPEEDS["cpu"] is benchmarks/results/gpu_check_cpu_full.json divided out: its step less its bare SD step,
+    over its random view and two sketch views (whole, at the random view's size, when it was measured) at nerfacto's
+    samples per ray."""
+    from nerfstudio.models.nerfacto import NerfactoModelConfig
+
+    result = json.loads((RESULTS.parent / "gpu_check_cpu_full.json").read_text())
+    nerfacto = NerfactoModelConfig()
+    samples_per_ray = nerfacto.num_nerf_samples_per_ray + sum(nerfacto.num_proposal_samples_per_ray)
+    assert samples_per_ray == memory_plan.STEP_MODELS["nerfacto"].samples_per_ray
+    side = result["settings"]["guidance_resolution"]
+    assert result["settings"]["sd_image_size"] == 512 and result["settings"]["precision"].startswith("fp32")
+    speed = step_time.STEP_SPEEDS["cpu"]
+    assert speed.sd_step_at_512 == pytest.approx(result["sd_floor_ms"] / 1000, rel=1e-3)
+    nerf_seconds = (result["ms_per_iteration"] - result["sd_floor_ms"]) / 1000
+    assert speed.per_field_sample == pytest.approx(nerf_seconds / (3 * side**2 * samples_per_ray), rel=1e-3)
+
+
+def test_a_step_of_minutes_is_warned_at_the_threshold_with_what_to_lower():
+    threshold = step_time.SLOW_STEP_SECONDS
+    assert step_time.slow_step_warning(step_time.StepTime(threshold, True, "x"), "cpu") is None
+    message = step_time.slow_step_warning(step_time.StepTime(threshold * 1.01, True, "x"), "cpu")
+    assert "guidance-resolution" in message and "--machine.device-type cuda" in message
+    on_gpu = step_time.slow_step_warning(step_time.StepTime(threshold * 1.01, True, "x"), "cuda")
+    assert "guidance-resolution" in on_gpu and "device-type" not in on_gpu
+    # The case found: a 1024 px guidance render of a nerfacto edit on the CPU, warned; the default 128 px on a GPU not.
+    large = step_time.step_time("cpu", memory_plan.field_samples("nerfacto", StepWork(1024.0**2, 1854.0)), 512)
+    assert step_time.slow_step_warning(large, "cpu") is not None
+    default = step_time.step_time("cuda", memory_plan.field_samples("nerfacto", StepWork(128.0**2, 1854.0)), 512)
+    assert step_time.slow_step_warning(default, "cuda") is None
+
+
+@pytest.mark.parametrize("seconds, said", [(0.25, "0.25 s"), (1.41, "1.4 s"), (42, "42 s"), (150, "2.5 min"),
+                                           (7200, "2.0 h"), (20 * 3600, "20 h"), (3 * 86400, "3.0 days"),
+                                           (2593 * 86400, "2,593 days")])
+def test_durations_are_said_in_their_unit(seconds, said):
+    assert step_time.duration(seconds) == said
+
+
+@pytest.mark.parametrize("device, argv, warned", [
+    ("cpu", ["ns-train", "sked", "--mixed-precision", "True"], True),
+    ("cpu", ["ns-train", "sked"], False),  # the preset's own True: for a GPU, not typed
+    ("cuda", ["ns-train", "sked", "--mixed-precision", "True"], False),
+])
+def test_mixed_precision_typed_for_the_cpu_is_warned(device, argv, warned):
+    import warnings
+
+    from sked_ns.engine.presets import edit_preset
+
+    config = edit_preset()
+    config.machine.device_type = device
+    assert config.mixed_precision
+    with warnings.catch_warnings(record=True) as seen:
+        warnings.simplefilter("always")
+        memory_plan.warn_idle_mixed_precision(config, argv)
+    assert any("--mixed-precision True: has no effect on the CPU" in str(w.message) for w in seen) == warned

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import re
 import warnings
 
 import numpy as np
@@ -12,7 +13,15 @@ from conftest import random_pose
 from sked_ns.engine.datamanager import SkedDataManagerConfig
 from sked_ns.engine.presets import PRESETS, read_preset
 from sked_ns.errors import SkedOptionError, SkedOptionWarning
-from sked_ns.method.validation import check_options, check_sketch_pixels, warn_unusual_options
+from sked_ns.method.validation import (
+    LOSS_WEIGHTS,
+    USUAL_RANGES,
+    check_optimizers,
+    check_options,
+    check_sketch_pixels,
+    unusual,
+    warn_unusual_options,
+)
 from sked_ns.models.nerf.nerfacto import SkedNerfactoModelConfig
 from sked_ns.models.nerf.ngp import SkedNGPModelConfig
 from sked_ns.sketches.sketch_set import SketchSet, SketchView
@@ -153,3 +162,90 @@ def test_base_proposal_grids_below_zero_are_refused_and_coarse_ones_warned():
     with warnings.catch_warnings():
         warnings.simplefilter("error", SkedOptionWarning)
         check_options(SkedNerfactoModelConfig(base_proposal_grid=0))  # the networks: legal
+
+
+EXTREMES = [1e-12, 1e12, 1e3]
+"""Values typed by mistake (a lost minus sign in an exponent, a wrong unit): each warned where outside its range."""
+
+
+@pytest.mark.parametrize("name", LOSS_WEIGHTS)
+@pytest.mark.parametrize("value", EXTREMES)
+def test_a_loss_weight_orders_of_magnitude_off_is_warned(name, value):
+    with pytest.warns(SkedOptionWarning, match=re.escape(f"--pipeline.model.{name.replace('_', '-')} {value:g}: ")):
+        check_options(SkedNerfactoModelConfig(**{name: value}))
+
+
+@pytest.mark.parametrize("name", ["preservation_delta", "seed_size"])
+@pytest.mark.parametrize("value", EXTREMES)
+def test_a_length_orders_of_magnitude_off_is_warned(name, value):
+    with pytest.warns(SkedOptionWarning, match=re.escape(f"--pipeline.model.{name.replace('_', '-')} {value:g}: ")):
+        check_options(SkedNerfactoModelConfig(**{name: value}))
+
+
+@pytest.mark.parametrize("name", LOSS_WEIGHTS + ("preservation_delta", "seed_size"))
+def test_each_knobs_default_is_in_its_usual_range(name):
+    usual = USUAL_RANGES["loss_weight" if name in LOSS_WEIGHTS else name]
+    default = getattr(SkedNerfactoModelConfig(), name)
+    assert default == 0 or usual.low <= default <= usual.high
+    assert unusual(name, default, usual) is None
+
+
+def _presets_optimizers():
+    from sked_ns.engine.presets import edit_preset
+    from sked_ns.method.options import SkedOptions
+    from sked_ns.models.splat.rates import splat_optimizers
+
+    yield from (edit_preset(name).optimizers for name in PRESETS)
+    for iterations in (1, 30, 500, 10_000, 30_000):  # the splat edit's rates follow its length and seed opacity
+        for seed_opacity in (1e-3, 0.005, 0.5):
+            yield splat_optimizers(iterations, SkedOptions(seed_opacity=seed_opacity))
+    yield splat_optimizers(10_000)  # splatfacto's own
+
+
+def test_every_presets_and_splat_edits_learning_rates_pass_silently():
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", SkedOptionWarning)
+        for optimizers in _presets_optimizers():
+            assert check_optimizers(optimizers) == []
+
+
+@pytest.mark.parametrize("group", ["proposal_networks", "fields", "hash_grids"])
+@pytest.mark.parametrize("setting, typed", [("optimizer", "optimizer.lr"), ("scheduler", "scheduler.lr-final")])
+@pytest.mark.parametrize("value", EXTREMES)
+def test_a_learning_rate_orders_of_magnitude_off_is_warned_by_its_flag(group, setting, typed, value):
+    from sked_ns.engine.presets import edit_preset
+
+    optimizers = edit_preset().optimizers
+    field = "lr" if setting == "optimizer" else "lr_final"
+    setattr(optimizers[group][setting], field, value)
+    flag_typed = f"--optimizers.{group.replace('_', '-')}.{typed} {value:g}: Adam moves"
+    with pytest.warns(SkedOptionWarning, match=re.escape(flag_typed)):
+        assert len(check_optimizers(optimizers)) == 1
+
+
+@pytest.mark.parametrize("value", [-5e-3, float("nan"), float("inf")])
+def test_a_negative_or_non_finite_learning_rate_is_refused(value):
+    from sked_ns.engine.presets import edit_preset
+
+    optimizers = edit_preset().optimizers
+    optimizers["fields"]["optimizer"].lr = value
+    with pytest.raises(SkedOptionError, match="--optimizers.fields.optimizer.lr "):
+        check_optimizers(optimizers)
+    optimizers["fields"]["optimizer"].lr = 0.0  # a frozen group: legal, and not warned
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", SkedOptionWarning)
+        check_optimizers(optimizers)
+
+
+def test_edit_inputs_check_the_learning_rates_before_anything_is_written(tmp_path):
+    """The edit's inputs are checked at its start (trainer.resolve_edit), before the base or data are read."""
+    from sked_ns.engine.edit_inputs import check_edit_inputs
+    from sked_ns.engine.presets import edit_preset
+
+    config = edit_preset()
+    config.output_dir = tmp_path
+    config.machine.device_type = "cpu"
+    config.optimizers["hash_grids"]["optimizer"].lr = -1.0
+    with pytest.raises(SkedOptionError, match="--optimizers.hash-grids.optimizer.lr -1.0"):
+        check_edit_inputs(config)
+    assert not any(tmp_path.iterdir())
