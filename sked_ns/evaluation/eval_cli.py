@@ -32,9 +32,14 @@ def entrypoint(argv: Optional[List[str]] = None) -> None:
     quiet_third_party_warnings()  # before nerfstudio is imported: its import warns
     show_warnings_as_lines()
     args = parse(argv)
-    from sked_ns.evaluation.evaluate import main
+    from sked_ns.evaluation.exhaustion import MEMORY_HINT, exhaustion_as_error
 
-    main(args)
+    with exhaustion_as_error(f"sked-eval {args.config}", memory_fix=f"{MEMORY_HINT}, or lower --resolution, "
+                             "--novel-resolution and --clip-resolution (or --clip-views and --max-novel-views)",
+                             disk_fix="free space there, or pass --output and --sheet on another disk"):
+        from sked_ns.evaluation.evaluate import main
+
+        main(args)
 
 
 if __name__ == "__main__":

@@ -105,7 +105,7 @@ def check_run_files(scene, named: str) -> None:
     needed = [("data", getattr(datamanager, "data", None) or getattr(datamanager.dataparser, "data", None))]
     if scene.family == "sked":
         if scene.model_config.base_checkpoint is not None:
-            base_weights(scene.model_config)  # the base run's, or the edit's own link to it
+            base_weights(scene.model_config)  # the edit's own copy of its base (the base run's before it has one)
         needed += [("sketch set", scene.model_config.sketches)]
     for what, path in needed:
         if path is not None and not Path(path).exists():

@@ -40,6 +40,7 @@ from sked_ns.evaluation.eval_inputs import (
     orbit_count,
     output_paths,
 )
+from sked_ns.evaluation.exhaustion import exhaustion_line
 from sked_ns.evaluation.metrics import intersection_over_sketch, psnr_outside, ssim_outside
 from sked_ns.evaluation.render import load_pipeline, render_at, render_base_at, render_camera, resized_mask
 from sked_ns.progress import Progress
@@ -138,9 +139,9 @@ def evaluate(edit_run: Path, base_run: Optional[Path] = None, sketches: Optional
     base_run = Path(base_run) if base_run else Path(model_config.base_checkpoint).parent.parent
     sketches, sketch_set = checked_sketches(sketches, model_config)
     check_sketch_masks(sketch_set, resolution)
-    edit_pipeline = load_pipeline(edit.run_dir, device)
+    edit_pipeline = load_pipeline(edit.run_dir, device, flag="sked-eval")
     # The edit holds a frozen copy of its own base: render that unless another base is asked for.
-    base_pipeline = None if own_base else load_pipeline(base_run, device)
+    base_pipeline = None if own_base else load_pipeline(base_run, device, flag="--base")
     sketch_set = sketch_set.in_model_frame(edit_pipeline.datamanager.data_frame_transform)
     lpips, lpips_reason = _lpips_or_reason()
 
@@ -223,15 +224,33 @@ def check_live_run(edit, output: Path, sheet: Path) -> None:
 
 def write_outputs(outcome: dict, output: Path, sheet: Path) -> None:
     """The contact sheet, then the metrics JSON (whose presence says the evaluation is whole), each written beside
-    and renamed into place, so a kill leaves the earlier result or none."""
+    and renamed into place, so a kill or a full disk leaves the earlier result or none."""
     import cv2
 
     partial = sheet.with_name(f".{sheet.stem}.partial{sheet.suffix}")  # the suffix tells OpenCV the format
-    if not cv2.imwrite(str(partial), (outcome["sheet"].numpy().clip(0, 1) * 255).round().astype(np.uint8)[..., ::-1]):
-        raise SkedUserError(f"--sheet {sheet}: could not write the contact sheet (OpenCV needs a writable path "
-                            "ending in .png).")
-    publish_atomically(partial, sheet)
-    write_text_atomically(output, json.dumps(outcome["metrics"], indent=2))
+    pixels = (outcome["sheet"].numpy().clip(0, 1) * 255).round().astype(np.uint8)[..., ::-1]
+    try:
+        with _writing("--sheet", sheet):
+            if not cv2.imwrite(str(partial), pixels):
+                raise SkedUserError(f"--sheet {sheet}: could not write the contact sheet (OpenCV needs a writable path "
+                                    "ending in .png, and space on its disk).")
+            publish_atomically(partial, sheet)
+    finally:
+        with contextlib.suppress(OSError):
+            partial.unlink(missing_ok=True)
+    with _writing("--output", output):
+        write_text_atomically(output, json.dumps(outcome["metrics"], indent=2))
+
+
+@contextlib.contextmanager
+def _writing(flag: str, path: Path):
+    """A failure to write one of sked-eval's outputs as one line naming it: a full disk says so."""
+    try:
+        yield
+    except OSError as error:
+        line = exhaustion_line(f"{flag} {path}: writing it", error,
+                               disk_fix=f"free space there, or pass {flag} on another disk; an earlier result is kept")
+        raise SkedUserError(line or f"{flag} {path}: cannot write it ({error.strerror or error}).") from error
 
 
 def main(args) -> None:

@@ -2,12 +2,14 @@
 
 from __future__ import annotations
 
+import types
 from pathlib import Path
-from typing import Dict, Optional
+from typing import Dict, Optional, Tuple
 
 import torch
 
-from sked_ns.errors import SkedUserError
+from sked_ns.errors import SkedFileNotFoundError, SkedUserError
+from sked_ns.evaluation.exhaustion import exhaustion_as_error
 from sked_ns.models.registry import is_sked_model, renders_cameras
 from sked_ns.sketches.sketch_set import SketchView, sketch_view_at
 
@@ -78,9 +80,50 @@ def resized_mask(view: SketchView, resolution: int) -> torch.Tensor:
     return sketch_view_at(view, resolution)[1]
 
 
+CHECKPOINT_TRIES = 3
+"""Reads of a run's latest checkpoint before giving up: a run still training replaces it at every save."""
+
+
+def read_checkpoint(run, flag: str, pinned: bool = False) -> Tuple[Path, dict]:
+    """(checkpoint, its state) of a resolved run (engine/base_scene.resolve_base). A run still training saves its
+    next checkpoint and then removes the last (nerfstudio's save_only_latest_checkpoint): one gone between its pick
+    and its read is picked again, the newest whole one. `pinned`: the user named that checkpoint; never another."""
+    from sked_ns.engine.base_scene import resolve_base
+
+    checkpoint = run.checkpoint
+    for attempt in range(1, CHECKPOINT_TRIES + 1):
+        try:
+            return checkpoint, torch.load(checkpoint, map_location="cpu")
+        except FileNotFoundError as error:
+            if pinned:
+                raise SkedFileNotFoundError(f"{flag} {checkpoint}: removed before it could be read (its run saved a "
+                                            "newer one?); pass the run folder to load its latest.") from error
+            if attempt == CHECKPOINT_TRIES:
+                raise SkedFileNotFoundError(f"{flag} {run.run_dir}: its latest checkpoint was replaced {attempt} "
+                                            "times while being read (the run is still training and saving that "
+                                            "often); try again, or wait for the run to end.") from error
+        checkpoint = resolve_base(run.run_dir, flag=flag).checkpoint
+    raise AssertionError("unreachable: the last try returns or raises")
+
+
+def _without_training_loaders(datamanager_config) -> None:
+    """A run loaded to render needs its datasets (cameras, and photos read one at a time), not the loaders it trained
+    from, which read every photo up front: nerfstudio's on a thread pool (VanillaDataManager) or in a process
+    (ParallelDataManager). This config alone sets its datamanager up as a subclass that skips them."""
+    target = datamanager_config._target
+    name = f"{getattr(target, '__name__', 'DataManager')}ForRendering"
+    skip = {"setup_train": _no_loaders, "setup_eval": _no_loaders, "__module__": __name__}
+    datamanager_config._target = types.new_class(name, (target,), exec_body=lambda namespace: namespace.update(skip))
+
+
+def _no_loaders(self) -> None:
+    """In place of setup_train and setup_eval: nothing to read before a render."""
+
+
 def load_pipeline(run_dir: Path, device: str = "cpu", flag: str = "--load-dir", data: Optional[Path] = None):
     """A trained run's pipeline (any method, SKED included) with its latest weights, for rendering; `flag`: how the
-    user named the run, for the error if it is not one; `data`: its dataset, when not where its config.yml says."""
+    user named the run, for the error if it is not one; `data`: its dataset, when not where its config.yml says.
+    Running out of memory or threads while it loads is one error line, naming the run."""
     from sked_ns.engine.base_scene import resolve_base
     from sked_ns.method.options import without_lpips
 
@@ -95,13 +138,16 @@ def load_pipeline(run_dir: Path, device: str = "cpu", flag: str = "--load-dir", 
         from sked_ns.models.nerf.nerfacc_backend import install_lazy_backend
 
         install_lazy_backend()  # a stock instant-ngp base rendered by a sked-* command gets kernels that build
-    run.config.machine.device_type = device
-    if data is not None:
-        run.config.pipeline.datamanager.data = run.config.pipeline.datamanager.dataparser.data = Path(data)
-    with without_lpips():
-        pipeline = run.config.pipeline.setup(device=device, test_mode="test")
-    state = torch.load(run.checkpoint, map_location="cpu")
-    pipeline.load_pipeline(state["pipeline"], state["step"])
+    with exhaustion_as_error(f"{flag} {run_dir}: loading the run"):
+        # Read as soon as picked: a run still training removes its older checkpoints.
+        checkpoint, state = read_checkpoint(run, flag, pinned=Path(run_dir).suffix == ".ckpt")
+        run.config.machine.device_type = device
+        if data is not None:
+            run.config.pipeline.datamanager.data = run.config.pipeline.datamanager.dataparser.data = Path(data)
+        _without_training_loaders(run.config.pipeline.datamanager)
+        with without_lpips():
+            pipeline = run.config.pipeline.setup(device=device, test_mode="test")
+        pipeline.load_pipeline(state["pipeline"], state["step"])
     # What was scored, recorded by sked-eval: a run still training gets newer checkpoints meanwhile.
-    pipeline.sked_loaded_step, pipeline.sked_loaded_checkpoint = int(state["step"]), run.checkpoint
+    pipeline.sked_loaded_step, pipeline.sked_loaded_checkpoint = int(state["step"]), checkpoint
     return pipeline.eval()
