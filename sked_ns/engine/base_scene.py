@@ -33,6 +33,12 @@ class BaseScene:
     """The latest (or chosen) step-*.ckpt."""
     config: object
     """The run's TrainerConfig, read from config.yml."""
+    config_file: Optional[Path] = None
+    """Where that config was read (an edit's copy of its base holds it as base_config.yml); None: run_dir's."""
+
+    @property
+    def config_path(self) -> Path:
+        return self.config_file or self.run_dir / "config.yml"
 
     @property
     def method(self) -> str:
@@ -130,9 +136,10 @@ def resolve_base(load_dir: Path, step: Optional[int] = None, flag: str = "--load
     return read_scene(run_dir, checkpoint)
 
 
-def read_scene(run_dir: Path, checkpoint: Path) -> BaseScene:
-    """The run at `run_dir` (its config.yml read and checked) with `checkpoint` as the weights it is loaded from."""
-    config_path = run_dir / "config.yml"
+def read_scene(run_dir: Path, checkpoint: Path, config_file: Optional[Path] = None) -> BaseScene:
+    """The run at `run_dir` (its config.yml, or `config_file`, read and checked) with `checkpoint` as the weights it
+    is loaded from."""
+    config_path = config_file or run_dir / "config.yml"
     try:
         config = yaml.load(config_path.read_text(), Loader=yaml.Loader)
         method, model_config = config.method_name, config.pipeline.model
@@ -146,7 +153,7 @@ def read_scene(run_dir: Path, checkpoint: Path) -> BaseScene:
         )
     if family(model_config) == "sked":
         warn_stale_start(config, config_path)
-    return BaseScene(run_dir=run_dir, checkpoint=checkpoint, config=config)
+    return BaseScene(run_dir=run_dir, checkpoint=checkpoint, config=config, config_file=config_file)
 
 
 def refuse_unstarted_edit(config_path: Path) -> None:
@@ -250,16 +257,25 @@ def check_same_frame(base: BaseScene, here: DataparserTransform) -> None:
         f"{path}: the base was trained in another frame than --data and its dataparser give here (base scale "
         f"{saved.scale:.6g}, translation {np.round(saved.transform[:, 3], 4).tolist()}; here scale {here.scale:.6g}, "
         f"translation {np.round(here.transform[:, 3], 4).tolist()}). Pass the base's dataparser and its settings: "
-        f"{dataparser_command(base)} (see {base.run_dir / 'config.yml'}, pipeline.datamanager.dataparser)."
+        f"{dataparser_command(base)} (see {base.config_path}, pipeline.datamanager.dataparser)."
     )
 
 
 def edited_base(model) -> BaseScene:
-    """An edit's base: its run (config, data frame) and the checkpoint the edit reads, the edit's own link to it once
-    the base run saved a newer one (method/frozen_base.base_weights)."""
+    """An edit's base: the config, data frame and checkpoint the edit reads, from its own copy of them
+    (engine/kept_base.py) once it has one, so a base run moved, deleted or trained on since does not matter."""
+    from sked_ns.engine.kept_base import kept_config
     from sked_ns.method.frozen_base import base_weights
 
     checkpoint, weights = Path(model.base_checkpoint), base_weights(model)
+    config = kept_config(weights) if weights != checkpoint else None
+    if config is not None:
+        return read_scene(weights.parent, weights, config_file=config)
+    run = checkpoint.parent.parent  # an edit not yet started, or kept by an older sked_ns (its checkpoint alone)
+    if not (run / "config.yml").exists():
+        raise SkedFileNotFoundError(f"{run}: the edit's base run was moved or deleted (its config.yml is gone), and "
+                                    "the edit reads the base's config and data frame from it. Put that run back "
+                                    "there, or edit the base again where it is now.")
     if weights == checkpoint:
         return resolve_base(checkpoint)
-    return read_scene(checkpoint.parent.parent, weights)
+    return read_scene(run, weights)

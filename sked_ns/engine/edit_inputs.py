@@ -22,7 +22,7 @@ from sked_ns.engine.pipeline import refuse_multi_device
 from sked_ns.errors import SkedFileNotFoundError, SkedUserError, reading, warn
 from sked_ns.guidance import check_guidance
 from sked_ns.method.options import is_carving
-from sked_ns.method.validation import check_sketch_pixels
+from sked_ns.method.validation import check_optimizers, check_sketch_pixels
 from sked_ns.sketches.sketch_set import load_sketch_set
 
 MISSING_IMAGES_SHOWN = 3
@@ -33,6 +33,7 @@ def check_edit_inputs(config) -> None:
     """The devices, the guidance (prompt and weights), the sketch set and the data with it, as the edit reads them."""
     model = config.pipeline.model
     check_devices(config.machine)
+    check_optimizers(config.optimizers)  # the edit's own (a splat edit's set at its start)
     check_guidance(model.guidance, model.prompt)
     if not is_carving(model):
         model.guidance.check_available()  # weights are loaded only at the first step
@@ -46,11 +47,12 @@ def check_edit_inputs(config) -> None:
     check_sketches_in_data(config)
     check_memory(config)  # the plan printed; an edit that cannot fit on its GPU is refused with the options that do
     check_disk_space(config)
-    warn_live_base(Path(model.base_checkpoint))
+    if model.base_kept is None:  # a new edit (a resumed one has its own copy of the base)
+        warn_live_base(Path(model.base_checkpoint))
 
 
 def warn_live_base(checkpoint: Path) -> None:
-    """A base still training changes after the edit starts: the edit is of its checkpoint as saved now (kept linked in
+    """A base still training changes after the edit starts: the edit is of its checkpoint as saved now (copied into
     the edit's folder, engine/kept_base.py), not of what the base becomes; almost surely not what was meant."""
     from sked_ns.run_lock import describe, holder, is_this_process
 
@@ -77,21 +79,27 @@ def check_disk_space(config) -> None:
     first save cannot fit (a save writes the new checkpoint beside the last), warned when all that are kept cannot."""
     import shutil
 
+    from sked_ns.method.frozen_base import base_weights
+
     model = config.pipeline.model
-    sizes = [Path(model.base_checkpoint).stat().st_size] if model.base_checkpoint else []
+    base = base_weights(model).stat().st_size if model.base_checkpoint else 0  # the edit's own copy once it has one
+    sizes = [base] if base else []
     if config.load_dir is not None:  # a resumed edit: its own checkpoints say it
         sizes += [path.stat().st_size for path in Path(config.load_dir).glob("step-*.ckpt")]
     if not sizes:
         return
     size = CHECKPOINT_MARGIN * max(sizes)
     folder = config.get_checkpoint_dir()
+    own = model.base_kept is not None and Path(model.base_kept).parent == folder.parent.absolute() / "base"
+    copy = 0 if own or not base else base  # a new run folder gets its own copy of the base (at most this size)
     free = shutil.disk_usage(_existing_ancestor(folder)).free
     gb = 2**30
-    if free < 2 * size:
+    if free < 2 * size + copy:
+        kept = f", and its copy of the base about {copy / gb:.2f} GB" if copy else ""
         raise SkedUserError(f"--output-dir {config.output_dir}: {free / gb:.2f} GB free where the checkpoints go "
-                            f"({folder}), and a save needs about {2 * size / gb:.2f} GB (each checkpoint about "
-                            f"{size / gb:.2f} GB, the new one written beside the last). Free space there, or pass "
-                            "another --output-dir.")
+                            f"({folder}), and the edit needs about {(2 * size + copy) / gb:.2f} GB (each checkpoint "
+                            f"about {size / gb:.2f} GB, the new one written beside the last{kept}). Free space there, "
+                            "or pass another --output-dir.")
     saves = config.max_num_iterations // max(config.steps_per_save, 1) + 1
     if not config.save_only_latest_checkpoint and free < saves * size:
         warn(f"--save-only-latest-checkpoint False: the edit's {saves} checkpoints need about {saves * size / gb:.1f} "

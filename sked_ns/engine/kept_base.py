@@ -1,44 +1,107 @@
-"""The edit's own hold on its base's checkpoint.
+"""The edit's own copy of its base: what it needs of the base run, kept in its own run folder.
 
-An edit is its changes to one base checkpoint, read whenever the edit is loaded (the frozen base is not copied into
-the edit's checkpoints). A base run that trains on with `save_only_latest_checkpoint` (nerfstudio's default) removes
-that file at its next save. So when an edit starts, its run folder gets a hard link to it, `<edit run>/base/step-*.ckpt`:
-no second copy on disk, and the base's files are neither moved nor changed (the base's config and data frame are
-still read from its run, which a later save leaves in place). Where the file system refuses a link, the
-edit says so and reads the base run's file as before.
+An edit is its changes to one base checkpoint, read whenever the edit is loaded (the frozen base is not saved in the
+edit's checkpoints), in the frame of the base's run. So when an edit starts, its run folder gets `<edit run>/base/`:
+
+- `step-N.ckpt`: the base checkpoint's step and model weights (its optimiser state dropped: nothing reads it), a file
+  of the edit's own, so no later write to the base run (a base trained on or resumed to the same step rewrites its
+  checkpoint in place) can change what the edit renders;
+- `base_config.yml` and `dataparser_transforms.json`: the base run's config and data frame, so the edit opens after
+  its base run is moved or deleted (not named config.yml: the folder is not a run of its own).
+
+Every later load reads this folder, never the base run. The sketch set, which shapes the edit's kept space whenever
+it renders, is copied likewise into `<edit run>/sketches/` (where a session draws its own), and config.yml names
+that copy. The files are written once, by the edit that starts.
 """
 
 from __future__ import annotations
 
-import errno
+import contextlib
 import os
 import shutil
+import tempfile
 from pathlib import Path
+from typing import Optional
 
-from sked_ns.errors import warn
+import torch
+
+from sked_ns.atomic import publish_atomically
+from sked_ns.errors import SkedUserError
 
 KEPT = "base"
-"""The folder in the edit's run that holds the link (no config.yml: it is not a run of its own)."""
+"""The folder in the edit's run that holds its copy of the base."""
+CONFIG = "base_config.yml"
+"""The base run's config.yml, as the kept folder holds it."""
+FRAME = "dataparser_transforms.json"
+"""The base run's data frame (the name nerfstudio gives it)."""
+
+
+def kept_config(kept: Path) -> Optional[Path]:
+    """The base's config beside a kept checkpoint, or None (an edit of an older sked_ns kept the checkpoint alone)."""
+    path = Path(kept).parent / CONFIG
+    return path if path.exists() else None
 
 
 def keep_base(model, run_dir: Path) -> None:
-    """Link the edit's base checkpoint into `run_dir` and record it on the model config (`base_kept`)."""
+    """Copy what the edit reads of its base into `run_dir` and record the copy on the model config (`base_kept`): from
+    the base run for a new edit, from the interrupted run's copy for one resumed into a new folder."""
     if model.base_checkpoint is None:
         return
+    folder = (Path(run_dir) / KEPT).absolute()
+    kept = Path(model.base_kept) if model.base_kept is not None else None
+    if kept is not None and kept.parent == folder and kept.exists():
+        return  # this run's own copy, made when it started
+    base_run = Path(model.base_checkpoint).parent.parent
+    sources = {CONFIG: base_run / "config.yml", FRAME: base_run / FRAME}
     checkpoint = Path(model.base_checkpoint)
-    kept = (Path(run_dir) / KEPT / checkpoint.name).absolute()
-    if model.base_kept is not None and Path(model.base_kept).exists():
-        return  # a resumed edit keeps what its start kept
+    if kept is not None and kept.exists():  # resumed into a new folder: the interrupted run's copy is the base
+        checkpoint = kept
+        if kept_config(kept):
+            sources = {name: kept.parent / name for name in sources}
     if not checkpoint.exists():
         return  # base_weights names it when the edit loads
     try:
-        kept.parent.mkdir(parents=True, exist_ok=True)
-        if not kept.exists():
-            os.link(checkpoint, kept)
+        folder.mkdir(parents=True, exist_ok=True)
+        for target, source in sources.items():
+            if source.exists():
+                _copy_atomically(folder / target, lambda path, source=source: shutil.copyfile(source, path))
+        state = torch.load(checkpoint, map_location="cpu")
+        weights = {"step": state.get("step", 0), "pipeline": state["pipeline"]}
+        _copy_atomically(folder / checkpoint.name, lambda path: torch.save(weights, path))
     except OSError as error:
-        shutil.rmtree(kept.parent, ignore_errors=True)
-        why = "another file system" if error.errno == errno.EXDEV else (error.strerror or str(error))
-        warn(f"{checkpoint}: the edit reads this base checkpoint whenever it is loaded and could not keep a link to "
-             f"it in its own folder ({why}). Keep the base run as it is: a base trained on replaces that file.")
-        return
-    model.base_kept = kept
+        raise SkedUserError(f"{folder}: cannot keep the edit's copy of its base checkpoint {checkpoint} there "
+                            f"({error.strerror or error}); the edit reads it whenever it is loaded. Free space "
+                            "there, or pass another --output-dir.") from error
+    model.base_kept = folder / checkpoint.name
+
+
+def _copy_atomically(path: Path, write) -> None:
+    """`write(partial)`, then the whole file published as `path` (a kill leaves no half copy for a later load)."""
+    handle, partial = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".partial", dir=path.parent)
+    os.close(handle)
+    try:
+        write(partial)
+        publish_atomically(Path(partial), path)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            os.unlink(partial)
+        raise
+
+
+def keep_sketches(model, run_dir: Path) -> None:
+    """Save the sketch set the edit was given into `run_dir`'s `sketches/` and point the model config at it, so a
+    sketch folder changed or removed afterwards changes nothing the edit renders."""
+    from sked_ns.engine.drawn_sketches import SESSION_SKETCHES
+    from sked_ns.sketches.sketch_set import SKETCHES_JSON, load_sketch_set, save_sketch_set
+
+    own = (Path(run_dir) / SESSION_SKETCHES).absolute()
+    if model.sketches is None or Path(model.sketches).absolute() == own:
+        return  # none yet, or drawn in this run's viewer
+    if not (own / SKETCHES_JSON).exists():
+        try:
+            save_sketch_set(load_sketch_set(Path(model.sketches)), own)  # as loaded: what the edit trains on
+        except OSError as error:
+            raise SkedUserError(f"{own}: cannot keep the edit's copy of its sketch set {model.sketches} there "
+                                f"({error.strerror or error}). Free space there, or pass another --output-dir.") \
+                from error
+    model.sketches = own

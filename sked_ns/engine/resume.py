@@ -129,8 +129,8 @@ def _settable(path: str) -> bool:
 
 
 def _derived(path: str) -> bool:
-    """The learning-rate schedules' length (resolve_edit sets it from --max-num-iterations), and the edit's link to its
-    base's checkpoint (set when its config.yml is first written; an older edit has none)."""
+    """The learning-rate schedules' length (resolve_edit sets it from --max-num-iterations), and the edit's copy of its
+    base (set when a run folder's config.yml is first written; an older edit has none)."""
     return (path.startswith("optimizers.") and path.endswith(".scheduler.max_steps")) or \
         path == "pipeline.model.base_kept"
 

@@ -30,7 +30,7 @@ from sked_ns.atomic import publish_atomically, write_text_atomically
 from sked_ns.engine.base_scene import BaseScene, checkpoint_step, dataparser_command, resolve_base, restart_command
 from sked_ns.engine.drawn_sketches import no_sketches, sketches_pending
 from sked_ns.engine.edit_inputs import check_edit_inputs
-from sked_ns.engine.kept_base import keep_base
+from sked_ns.engine.kept_base import keep_base, keep_sketches
 from sked_ns.engine.resume import preset_config, resumed_config, typed_settings
 from sked_ns.engine.safe_step import GuardedGradScaler, GuardedOptimizers, StepGuard
 from sked_ns.errors import SkedFileNotFoundError, SkedUserError, check_writable_folder
@@ -38,6 +38,7 @@ from sked_ns.method.frozen_base import base_implementation
 from sked_ns.method.options import SkedOptions, copy_base_architecture
 from sked_ns.method.validation import check_options
 from sked_ns.models.registry import representation_of
+from sked_ns.progress import Heartbeat
 from sked_ns.run_lock import hold, write_failure
 
 
@@ -81,6 +82,7 @@ def save_run_config(config: TrainerConfig) -> None:
     and a resume's load_dir / load_step name the interrupted run's: they describe this start, not the run."""
     path = config.get_base_dir() / "config.yml"
     keep_base(config.pipeline.model, config.get_base_dir())  # the base run may replace its checkpoint later
+    keep_sketches(config.pipeline.model, config.get_base_dir())  # and the sketch folder may change
     run = copy.copy(config)  # the trainer still resumes from the in-memory config
     vars(run).pop(SETTLED, None)
     run.load_dir = run.load_step = run.load_checkpoint = None
@@ -240,6 +242,7 @@ class SkedTrainer(Trainer):
     def __init__(self, config: SkedTrainerConfig, local_rank: int = 0, world_size: int = 1) -> None:
         super().__init__(config, local_rank=local_rank, world_size=world_size)
         self.step_guard = StepGuard(lambda: self.pipeline.model.parameters())
+        self.skipped_in_a_row, self._stepped = 0, False
         # Before setup, so the pipeline gets it too: never backpropagates or applies a non-finite value.
         self.grad_scaler = GuardedGradScaler(self.step_guard, enabled=self.grad_scaler.is_enabled(),
                                              device=self.device.split(":")[0])
@@ -309,21 +312,34 @@ class SkedTrainer(Trainer):
         return GuardedOptimizers(super().setup_optimizers(), self.step_guard)
 
     def train_iteration(self, step: int):
-        """nerfstudio's iteration under the step guard: a non-finite loss or gradient skips the update."""
+        """nerfstudio's iteration under the step guard: a non-finite loss or gradient skips the update. The first
+        says that it runs, and how long it has run, until it ends (it may take minutes: the memory plan's estimate)."""
         self.step_guard.start()
         device_type = "cpu" if self.device.split(":")[0] in ("cpu", "mps") else self.device.split(":")[0]
-        with default_autocast_dtype(device_type, self.autocast_dtype):
+        first, self._stepped = not self._stepped, True
+        what = "running the edit's first step" if step == 0 else f"running step {step}, the first since the resume"
+        heartbeat = Heartbeat("ns-train sked", what) if first else contextlib.nullcontext()
+        with heartbeat, default_autocast_dtype(device_type, self.autocast_dtype):
             loss, loss_dict, metrics_dict = super().train_iteration(step)
         if self.step_guard.reason == "loss":
             self._skip(step, [name for name, value in loss_dict.items() if not torch.isfinite(value).all()] or ["loss"])
         elif self.step_guard.skipped:
             self._skip(step, [self.step_guard.reason])
+        else:
+            self.skipped_in_a_row = 0
         metrics_dict["skipped_steps"] = torch.tensor(float(self.skipped_steps))
         return loss, loss_dict, metrics_dict
 
     def _skip(self, step: int, names) -> None:
         self.skipped_steps += 1
+        self.skipped_in_a_row += 1
         CONSOLE.print(f"[yellow]step {step}: non-finite {', '.join(names)}; update skipped[/yellow]")
+        if self.skipped_in_a_row >= MAX_SKIPPED_IN_A_ROW:
+            raise SkedUserError(
+                f"steps {step - self.skipped_in_a_row + 1}-{step}: every update skipped for a non-finite "
+                f"{', '.join(names)}, so the edit learns nothing; stopped. Likely wrong: the base's weights (--load-dir: "
+                "NaN or inf in its checkpoint), a learning rate (--optimizers.<group>.optimizer.lr), or a loss weight "
+                "(--pipeline.model.lambda-*) far from its default.")
 
     @check_main_thread
     def save_checkpoint(self, step: int) -> None:
@@ -356,6 +372,10 @@ class SkedTrainer(Trainer):
                     older.unlink()
 
 
+MAX_SKIPPED_IN_A_ROW = 32
+"""Updates skipped one after another before an edit stops: an fp16 loss scale backs off from its start
+(safe_step.INITIAL_LOSS_SCALE, 2**10) below 1 within 11 skips, so a longer run is not a scale being found but a
+step that cannot be computed."""
 INTERRUPTED_STATUS = 130
 """A shell's status for a command stopped by Ctrl-C (128 + SIGINT)."""
 

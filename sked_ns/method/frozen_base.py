@@ -43,18 +43,22 @@ class FrozenBase:
 
 
 def base_weights(options) -> Path:
-    """The checkpoint an edit's frozen base is read from: the base run's, or the edit's own link to it (`base_kept`)
-    once the base run no longer holds it."""
+    """The checkpoint an edit's frozen base is read from: the edit's own copy (`base_kept`, engine/kept_base.py), so
+    that no later write to the base run changes the edit; the base run's before that copy is made."""
     checkpoint = Path(options.base_checkpoint)
     kept = getattr(options, "base_kept", None)
-    if checkpoint.exists():
-        return checkpoint
     if kept is not None and Path(kept).exists():
         return Path(kept)
+    if kept is not None:  # its own copy gone: the base run's file may since have been rewritten
+        raise SkedFileNotFoundError(
+            f"{kept}: the edit's copy of its base checkpoint is missing; the edit is its changes to exactly that "
+            f"base, so loading it needs that file. Put it back (or copy {checkpoint} there if that base run was "
+            "not trained on since the edit started).")
+    if checkpoint.exists():
+        return checkpoint
     raise SkedFileNotFoundError(
         f"{checkpoint}: the edit's base checkpoint is missing (its base run saved a newer one and removed it, or was "
-        "moved); the edit is its changes to exactly that base, so loading it needs that file. Put it back there"
-        f"{'' if kept is None else f' or at {kept}'}.")
+        "moved); the edit is its changes to exactly that base, so loading it needs that file. Put it back there.")
 
 
 def read_model_state(checkpoint: Path) -> Dict[str, Tensor]:
@@ -72,7 +76,31 @@ def read_model_state(checkpoint: Path) -> Dict[str, Tensor]:
             model_state[key[len(prefix) :]] = value
     if not model_state:
         raise SkedUserError(f"{checkpoint}: holds no model weights (no '_model.' keys).")
+    check_weights(model_state, checkpoint)
     return model_state
+
+
+TRAINED_MAGNITUDE = 1e10
+"""No weight or buffer of a trained field or splat comes near this (positions are in the data's normalised frame,
+scales and densities are logs or pre-activations); past it, products in float32 and fp16 overflow."""
+
+
+def check_weights(state: Dict[str, Tensor], checkpoint: Path) -> None:
+    """Every floating tensor finite and of a magnitude training can give: a diverged or damaged base is refused,
+    naming the tensor, before an edit trains on it (its renders would be one flat colour, its steps all skipped)."""
+    for name, value in state.items():
+        if not torch.is_tensor(value) or not value.is_floating_point() or value.numel() == 0:
+            continue
+        largest = float(value.detach().abs().amax())  # NaN and inf propagate through amax
+        if largest <= TRAINED_MAGNITUDE:
+            continue
+        if largest != largest or largest == float("inf"):
+            kind = "NaN" if bool(torch.isnan(value).any()) else "infinite"
+            what = f"holds {kind} values in {name}"
+        else:
+            what = f"holds {largest:.3g} in {name}, far beyond what training gives (|w| < {TRAINED_MAGNITUDE:.0e})"
+        raise SkedUserError(f"{checkpoint}: the base's weights are damaged or diverged: it {what}. Edit an earlier "
+                            "checkpoint of that run (--load-step) or train the base again.")
 
 
 def check_photo_count(state: Dict[str, Tensor], photos: int, checkpoint: Path) -> None:

@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import copy
 import math
-import os
 import shutil
 from pathlib import Path
 
@@ -117,7 +116,8 @@ def test_interrupted_edit_resumes_from_its_last_checkpoint(scene, tmp_path):
     saved, model = yaml.load((interrupted / "config.yml").read_text(), Loader=yaml.Loader), config.pipeline.model
     assert type(model.guidance) is type(saved.pipeline.model.guidance) and type(model.guidance).__name__ != \
         "StableDiffusionGuidanceConfig"
-    assert (model.guidance_resolution, model.silhouette_resolution, model.sketches) == (16, 16, scene["sketches"])
+    # The sketch set is the edit's own copy, saved in its run folder when it started.
+    assert (model.guidance_resolution, model.silhouette_resolution, model.sketches) == (16, 16, interrupted / "sketches")
     assert (config.steps_per_save, config.machine.device_type, config.max_num_iterations) == (10, "cpu", 25)
     assert config.get_base_dir().parent == tmp_path / "resumed" / "edit" / "sked"
     trainer = config.setup(local_rank=0, world_size=1)
@@ -595,52 +595,6 @@ def test_an_edit_is_filed_under_its_base_s_experiment(scene, tmp_path):
     resolve_edit(config)
     assert config.experiment_name == "typed"
 
-
-
-def test_an_edit_keeps_a_link_to_its_base_s_checkpoint_in_its_own_folder(scene, edited):
-    """No second copy on disk: the same file under the edit's run, named in its config.yml; no second config.yml
-    in the run (tools find a run by its config.yml)."""
-    base_checkpoint = resolve_base(scene["base"]).checkpoint
-    kept = edited["run"] / "base" / base_checkpoint.name
-    assert os.path.samefile(kept, base_checkpoint)
-    saved = yaml.load((edited["run"] / "config.yml").read_text(), Loader=yaml.Loader)
-    assert Path(saved.pipeline.model.base_kept) == kept.absolute()
-    assert [path.parent for path in edited["run"].rglob("config.yml")] == [edited["run"]]
-
-
-def test_an_edit_opens_after_its_base_run_replaced_the_checkpoint_it_edits(scene, tmp_path):
-    """A base trained on with save_only_latest_checkpoint removes the checkpoint an edit was made from."""
-    base = tmp_path / "base-run"
-    shutil.copytree(scene["base"], base)
-    config = edit_config(base, scene["data"], scene["sketches"], tmp_path / "edits", iterations=2, steps_per_save=1,
-                         guidance_resolution=16, silhouette_resolution=16)
-    run = run_edit(config).base_dir
-    view = load_sketch_set(scene["sketches"]).views[0]
-    before = render_at(load_pipeline(run).model, view, 16)["rgb"]
-    checkpoint = resolve_base(base).checkpoint
-    checkpoint.unlink()  # what the base run's next save does
-    assert torch.equal(render_at(load_pipeline(run).model, view, 16)["rgb"], before)
-    shutil.rmtree(run / "base")  # and without the link: one line naming the file and what to do
-    with pytest.raises(SkedUserError, match=rf"{checkpoint}: the edit's base checkpoint is missing .*Put it back"):
-        load_pipeline(run)
-
-
-def test_a_base_that_cannot_be_linked_is_said_and_read_where_it_is(scene, tmp_path, monkeypatch):
-    import errno
-    from types import SimpleNamespace
-
-    from sked_ns.engine import kept_base
-
-    checkpoint = resolve_base(scene["base"]).checkpoint
-    model = SimpleNamespace(base_checkpoint=checkpoint, base_kept=None)
-
-    def refused(*_):
-        raise OSError(errno.EXDEV, "Invalid cross-device link")
-
-    monkeypatch.setattr(kept_base.os, "link", refused)
-    with pytest.warns(UserWarning, match=rf"{checkpoint.name}: the edit reads .*another file system"):
-        kept_base.keep_base(model, tmp_path / "run")
-    assert model.base_kept is None and not (tmp_path / "run" / "base").exists()
 
 
 def test_the_edit_s_config_is_settled_once_through_nerfstudio_s_hooks(scene, tmp_path, monkeypatch):
