@@ -41,6 +41,9 @@ _held: Dict[Path, int] = {}
 """Folders this process writes (`hold`), with the descriptor that holds each one's lock."""
 _scoped: set = set()
 """Descriptors of the locks held while a file is written (`writing`)."""
+_watching_forks = False
+"""Whether `_forget_in_child` runs in forked children: registered with the first lock, so a process that takes
+none (every ns-* command imports this module) gets no hook."""
 
 
 class WriterBusy(SkedUserError):
@@ -157,6 +160,7 @@ def _lock(fd: int, wait: bool) -> None:
 
 def _acquire(path: Path, wait: bool = False) -> int:
     """A descriptor holding the lock on `path` (created if missing), with this process's record in it."""
+    _watch_forks()
     while True:
         fd = _open(path, create=True)
         try:
@@ -283,5 +287,8 @@ def _forget_in_child() -> None:
     _scoped.clear()
 
 
-if hasattr(os, "register_at_fork"):
-    os.register_at_fork(after_in_child=_forget_in_child)
+def _watch_forks() -> None:
+    global _watching_forks
+    if not _watching_forks and hasattr(os, "register_at_fork"):
+        os.register_at_fork(after_in_child=_forget_in_child)
+    _watching_forks = True

@@ -50,9 +50,9 @@ CPU_PREVIEW_WIDTH = 160
 backdrop to click on (the mask keeps VIEW_WIDTH), and it costs about 1/10 of the rays."""
 
 
-def _load(run: Path, device: str, flag: str = "sked-sketch", data: Optional[Path] = None):
-    """(run folder, pipeline, dataparser transform) of a base run, with a clear error if it does not load; `data`:
-    the dataset's folder when it is not where the run's config.yml says."""
+def load_base(run: Path, device: str, flag: str = "sked-sketch", data: Optional[Path] = None):
+    """(run folder, pipeline, dataparser transform) of a base run, for sked-sketch and the edit session's viewer, with
+    a clear error if it does not load; `data`: the dataset's folder when it is not where the run's config.yml says."""
     from sked_ns.evaluation.render import load_pipeline
 
     run = run.parent if run.name == "config.yml" else run
@@ -289,7 +289,7 @@ def start_viewer(run: Path, out: Path, port: Optional[int] = None, device: str =
 
     from sked_ns.engine.base_scene import resolve_base
 
-    run, pipeline, transform = _load(run, device, flag)
+    run, pipeline, transform = load_base(run, device, flag)
     viewer_config = resolve_base(run, flag=flag).config.viewer
     if port is not None:
         viewer_config.websocket_port = port
@@ -356,7 +356,7 @@ def entrypoint(argv: Optional[List[str]] = None) -> None:
         parser.add_argument("--images", type=int, nargs="+", required=True, help="training image indices to render")
         args = parser.parse_args(argv[1:])
         check_new_canvas_folder(args.folder)  # before the base loads
-        _, pipeline, transform = _load(args.base, device)
+        _, pipeline, transform = load_base(args.base, device)
         path = write_canvases(renderer(pipeline), training_cameras(pipeline, args.images), transform, args.folder,
                               names=[f"training image {i}" for i in args.images])
         print(f"wrote {path}: paint the region on a copy of each view_XX.png saved as view_XX_sketch.png "

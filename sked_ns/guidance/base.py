@@ -10,6 +10,9 @@ from jaxtyping import Float
 from nerfstudio.configs.base_config import InstantiateConfig
 from torch import Tensor
 
+VIEW_DIRECTIONS = ("front", "side", "back", "overhead", "bottom")
+"""The directions a prompt is suffixed with (DreamFusion's directional prompts): a rendered view's `direction`."""
+
 
 @dataclass
 class RenderedView:
@@ -21,7 +24,7 @@ class RenderedView:
     """3x4, OpenGL axes."""
     focal: float
     direction: str
-    """front / side / back / overhead / bottom, for directional prompts."""
+    """One of VIEW_DIRECTIONS, for directional prompts."""
     base_image: Optional[Tensor] = None
     """The frozen base rendered from the same camera, for guidance that asks for it."""
     samples_per_side: int = 1

@@ -23,8 +23,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from sked_ns.errors import SkedFileNotFoundError, SkedUserError, is_number, refuse, warn_option
-from sked_ns.guidance.base import Guidance, GuidanceConfig, RenderedView
-from sked_ns.sketches.random_views import DIRECTIONS
+from sked_ns.guidance.base import VIEW_DIRECTIONS, Guidance, GuidanceConfig, RenderedView
 
 SdsWeighting = Literal["authors", "dreamfusion"]
 SDS_WEIGHTINGS = get_args(SdsWeighting)
@@ -314,7 +313,7 @@ class StableDiffusionGuidance(Guidance):
     def _embed(self, prompt: str, tokenizer, text_encoder) -> Dict[str, Tensor]:
         """Text embeddings of the prompt per view direction, and of "" (the unconditional one)."""
         directional = self.config.directional_prompts
-        tokens = view_prompt_tokens(tokenizer, prompt, {d: f", {d} view" if directional else "" for d in set(DIRECTIONS)})
+        tokens = view_prompt_tokens(tokenizer, prompt, {d: f", {d} view" if directional else "" for d in VIEW_DIRECTIONS})
         tokens[""] = tokenizer("", padding="max_length", max_length=tokenizer.model_max_length).input_ids
         text_encoder = text_encoder.to(self.device)
         with torch.no_grad():

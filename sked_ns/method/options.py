@@ -13,8 +13,6 @@ from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import TYPE_CHECKING, ClassVar, Dict, FrozenSet, List, Literal, Optional
 
-import torchmetrics.image.lpip as lpip_module
-
 from sked_ns.guidance import GuidanceChoice, StableDiffusionGuidanceConfig
 
 if TYPE_CHECKING:
@@ -47,8 +45,8 @@ class SkedOptions:
     base_checkpoint: Optional[Path] = None
     """The base's step-*.ckpt; filled in from --load-dir."""
     base_kept: Optional[Path] = None
-    """The edit's own link to that checkpoint (`<edit run>/base/`), read once the base run no
-    longer holds it (a base trained on saves only its latest checkpoint); set when the edit starts."""
+    """The edit's own copy of that checkpoint's weights (`<edit run>/base/`), which every load of the edit
+    reads (no later write to the base run changes the edit); set when the edit starts."""
     guidance: GuidanceChoice = field(default_factory=StableDiffusionGuidanceConfig)
     """What pulls the sketched region: a subcommand, `pipeline.model.guidance:stable-diffusion` (default) or
     another installed guidance (`pipeline.model.guidance:reference`: renders of a known target scene)."""
@@ -156,6 +154,8 @@ class SkedOptions:
 @contextlib.contextmanager
 def without_lpips():
     """nerfstudio models build LPIPS (an AlexNet download) in populate_modules; SKED needs none."""
+    import torchmetrics.image.lpip as lpip_module  # here, not at import: every ns-* command imports this module
+
     original = lpip_module.LearnedPerceptualImagePatchSimilarity
     lpip_module.LearnedPerceptualImagePatchSimilarity = lambda *args, **kwargs: None
     try:
@@ -226,7 +226,7 @@ def taken_from_the_base(config_class: type, base_class: type) -> None:
         if option.name in hints and helps.get(option.name):
             config_class.__annotations__[option.name] = Annotated[ours[option.name],
                                                                   tyro.conf.arg(help=helps[option.name])]
-    # The edit keeps the base's cameras (base_camera_optimizer): none to choose; the base's link is set at the start.
+    # The edit keeps the base's cameras (base_camera_optimizer): none to choose; the base's copy is made at the start.
     hidden = {"camera_optimizer": hints, "base_kept": ours}
     for name, types in hidden.items():
         if name in types:

@@ -21,7 +21,6 @@ from typing import Sequence
 import numpy as np
 import torch
 from jaxtyping import Float
-from scipy.ndimage import distance_transform_edt
 from torch import Tensor, nn
 
 from sked_ns.sketches.cameras import pixel_lookup, projection_rows
@@ -40,6 +39,8 @@ def check_beta(beta: float) -> float:
 
 def sketch_distance_transform(mask: np.ndarray) -> np.ndarray:
     """Exact Euclidean distance, in pixels, from every pixel to the nearest mask pixel (0 inside)."""
+    from scipy.ndimage import distance_transform_edt  # here, not at import: every ns-* command imports this module
+
     if not mask.any():
         raise ValueError("Cannot measure distances to an empty mask.")
     return distance_transform_edt(~mask).astype(np.float32)

@@ -24,7 +24,7 @@ from typing import Iterator, List, Optional
 import torch
 from nerfstudio.utils.rich_utils import CONSOLE
 
-from sked_ns.drawing.sketch_viewer import CPU_PREVIEW_WIDTH, _load, renderer
+from sked_ns.drawing.sketch_viewer import CPU_PREVIEW_WIDTH, load_base, renderer
 from sked_ns.drawing.sketching import SketchSession
 from sked_ns.engine.drawn_sketches import session_sketches
 from sked_ns.engine.edit_inputs import check_edit_inputs
@@ -58,7 +58,7 @@ class EditSession:
         self.lock = trainer.train_lock  # one lock for every round: the viewer renders under it
         datamanager = config.pipeline.datamanager
         data = datamanager.data or config.data or datamanager.dataparser.data
-        _, pipeline, transform = _load(self.base, config.machine.device_type, flag="--load-dir", data=data)
+        _, pipeline, transform = load_base(self.base, config.machine.device_type, flag="--load-dir", data=data)
         trainer.training_state = "paused"
         self.viewer = ViewerState(config.viewer, log_filename=trainer.base_dir / config.viewer.relative_log_filename,
                                   datapath=Path(data), pipeline=pipeline, trainer=trainer, train_lock=self.lock,

@@ -3,11 +3,13 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Optional, Type
+from typing import TYPE_CHECKING, Optional, Type
 
 from sked_ns.engine.drawn_sketches import no_sketches, session_sketches, sketches_pending
 from sked_ns.engine.trainer import SkedTrainer, SkedTrainerConfig, resolve_edit
-from sked_ns.session.rounds import EditSession, abandon_unstarted
+
+if TYPE_CHECKING:
+    from sked_ns.session.rounds import EditSession
 
 
 @dataclass
@@ -38,6 +40,8 @@ class SessionTrainer(SkedTrainer):
         if self.session is None:
             resolve_edit(self.config)
             if sketches_pending(self.config):  # the viewer opens on the base; training waits for the sketch set
+                from sked_ns.session.rounds import EditSession, abandon_unstarted  # the viewer's modules, when used
+
                 try:
                     self.session = EditSession(self)
                     self.session.start_first_round()

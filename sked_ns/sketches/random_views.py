@@ -24,7 +24,6 @@ import numpy as np
 import torch
 from torch import Tensor
 
-DIRECTIONS = ("front", "side", "back", "side", "overhead", "bottom")
 ELEVATION_RANGE_DEG = (-60.0, 90.0)
 """The authors' polar angle 0-150 deg, as elevation; sampled uniformly in the angle, as they do."""
 FOV_RANGE_DEG = (40.0, 80.0)

@@ -148,7 +148,7 @@ def test_canvases_go_into_a_new_folder_only_refused_before_the_base_loads(tmp_pa
     folder.mkdir()
     (folder / held).mkdir() if held.endswith("/") else (folder / held).write_text("the user's")
     before = sorted(p.name for p in folder.iterdir())
-    monkeypatch.setattr(sketch_viewer, "_load", lambda *args: pytest.fail("loaded the base"))
+    monkeypatch.setattr(sketch_viewer, "load_base", lambda *args: pytest.fail("loaded the base"))
     kind = "a sketch set" if held == "sketches.json" else "1 file"
     with pytest.raises(FileExistsError, match=rf"sked-sketch canvases: {folder} already holds {kind}.*new folder"):
         sketch_viewer.entrypoint(["canvases", str(tmp_path / "base"), str(folder), "--images", "0"])

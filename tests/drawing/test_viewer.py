@@ -166,10 +166,10 @@ def test_steering_controls_change_what_the_viewer_shows(scene, tmp_path):
 def test_cpu_preview_is_a_downscaled_render_of_the_same_view(scene):
     """The captured view's backdrop, rendered narrower on a CPU, shows the same picture."""
     from sked_ns.demo.scenes import sphere as demo_scene
-    from sked_ns.drawing.sketch_viewer import _load, renderer
+    from sked_ns.drawing.sketch_viewer import load_base, renderer
     from sked_ns.sketches.cameras import PinholeCamera
 
-    _, pipeline, transform = _load(scene["base"], "cpu")
+    _, pipeline, transform = load_base(scene["base"], "cpu")
     view = demo_scene.SCENES["hat"].sketch_set(size=64).in_model_frame(transform).views[0]
     camera = dataclasses.replace(PinholeCamera.from_view(view), height=48)  # not square: both axes scale
     full = renderer(pipeline)(camera)
