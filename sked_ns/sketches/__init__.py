@@ -15,4 +15,4 @@ def __getattr__(name: str):
     raise AttributeError(f"module 'sked_ns.sketches' has no attribute {name!r}")
 
 
-_SUBMODULES = {"cameras", "data_frame", "random_views", "sketch_set"}
+_SUBMODULES = {"cameras", "data_frame", "placement", "random_views", "sketch_set"}

@@ -79,7 +79,7 @@ def test_ctrl_c_before_the_first_checkpoint_names_the_command_that_starts_the_ed
     restart = lambda text: text.split("Start it again with ", 1)[1].rsplit(" (its other settings", 1)[0]  # noqa: E731
     words = shlex.split(restart(str(refused.value)))
     assert words[:4] == ["ns-train", "sked", "--load-dir", str(scene["base"])]
-    assert words[words.index("--sketches") + 1] == str(scene["sketches"])
+    assert words[words.index("--sketches") + 1] == str(run / "sketches")  # the run's own copy of the sketch set
     assert words[words.index("--prompt") + 1] == "a red hat; rm -rf ~"
     assert words[-3:] == ["nerfstudio-data", "--data", str(scene["data"])]
     assert shlex.split(restart(printed)) == words
@@ -118,7 +118,7 @@ def test_too_little_disk_for_a_checkpoint_is_refused_before_anything_is_written(
     usage = collections.namedtuple("usage", "total used free")
     monkeypatch.setattr(shutil, "disk_usage", lambda path: usage(10 * size, 9 * size, size))
     config = _config(scene, tmp_path / "out")
-    with pytest.raises(SkedUserError, match=r"--output-dir .*GB free where the checkpoints go .*a save needs about"):
+    with pytest.raises(SkedUserError, match=r"--output-dir .*GB free where the checkpoints go .*the edit needs about"):
         resolve_edit(config)
     assert not (tmp_path / "out").exists()
     monkeypatch.setattr(shutil, "disk_usage", lambda path: usage(100 * size, 90 * size, 4 * size))

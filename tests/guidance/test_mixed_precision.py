@@ -66,7 +66,7 @@ def _trainer(guidance, init_scale):
     trainer.config = SimpleNamespace(log_gradients=False)
     trainer.device, trainer.mixed_precision, trainer.autocast_dtype = "cpu", False, torch.float16
     trainer.gradient_accumulation_steps = {name: 1 for name in groups}
-    trainer.skipped_steps = 0
+    trainer.skipped_steps, trainer.skipped_in_a_row, trainer._stepped = 0, 0, True  # as __init__ and a first step leave them
     return trainer, field, camera
 
 

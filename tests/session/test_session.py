@@ -130,7 +130,9 @@ def test_a_session_sketches_edits_and_edits_again_then_resumes(scene, tmp_path, 
     config.vis = "tensorboard"
     resumed = run_edit(config)
     assert Path(resumed.config.load_dir) == second / "nerfstudio_models" and resumed._start_step == 4
-    assert Path(resumed.config.pipeline.model.sketches) == second / "sketches"
+    assert Path(resumed.config.pipeline.model.sketches) == resumed.base_dir / "sketches"  # its own copy of round 2's
+    assert load_sketch_set(resumed.base_dir / "sketches").views[0].mask.tolist() == \
+        load_sketch_set(second / "sketches").views[0].mask.tolist()
 
 
 def _ns_train() -> str:
