@@ -50,8 +50,8 @@ NO_KERNEL = {
 # Ops whose output size depends on the data: the host waits for the device to learn it.
 DATA_DEPENDENT = {"nonzero", "masked_select", "unique", "_unique", "_unique2", "unique_dim", "unique_consecutive",
                   "nonzero_numpy", "argwhere"}
-SKIP_FRAMES = ("/torch/", "/jaxtyping/", "/typeguard/", "dispatch_census.py", "step_census.py", "/contextlib.py",
-               "/functools.py")
+SKIP_FRAMES = ("/torch/", "/jaxtyping/", "/typeguard/", "dispatch_census.py", "step_census.py", "harness.py",
+               "/contextlib.py", "/functools.py")
 
 
 def _name(func) -> str:

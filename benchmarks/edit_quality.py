@@ -38,12 +38,10 @@ import time
 from pathlib import Path
 from typing import Dict, List, Optional
 
+import harness
 import numpy as np
-from sole_writer import claim
+from harness import RESULTS, ns_train_command
 
-from sked_ns.atomic import write_text_atomically
-
-RESULTS = Path(__file__).resolve().parent / "results"
 TUNED, HELD_OUT = ("hat", "handle", "antenna"), ("vase", "crate", "marker")  # the demo sphere's edits are tuned on
 UNBOUNDED = ("lawn",)  # held out too, reported apart: ground to the horizon and sky (unbounded_scenes)
 # A CPU step of a full-size nerfacto base at 32 px with nerfacto's 400 samples per ray takes ~25 s here:
@@ -70,13 +68,6 @@ def run(command: List[str], log: Path) -> None:
         raise RuntimeError(f"{' '.join(command[:3])} ... failed (log {log}):\n{log.read_text()[-3000:]}")
 
 
-def ns_train(arguments: List[str]) -> List[str]:
-    """`ns-train ARGUMENTS`, without nerfstudio's LPIPS metric (it downloads AlexNet weights)."""
-    code = ("import sys; from sked_ns.method.options import without_lpips; from nerfstudio.scripts.train import entrypoint; "
-            "sys.argv = ['ns-train'] + sys.argv[1:]\nwith without_lpips(): entrypoint()")
-    return [sys.executable, "-c", code, *arguments]
-
-
 def fit_splat_base(scene: str, data: Path, output: Path, fit: Dict, log: Path) -> Path:
     """A splatfacto run of the scene's photos, fitted on the CPU; its fit's PSNR goes to `log` (JSON)."""
     from sked_ns.demo.scenes.catalogue import scene_named
@@ -87,7 +78,7 @@ def fit_splat_base(scene: str, data: Path, output: Path, fit: Dict, log: Path) -
     if not (run_dir / "nerfstudio_models").exists():
         cloud = dataset_point_cloud(data, scene_named(scene).render_base)
         fit_base(data, output, SplatFit(**fit), seed_points=cloud, experiment="splat-base")
-        write_text_atomically(log, json.dumps(last_fit, indent=2))
+        harness.write_results(log, last_fit)
     return run_dir
 
 
@@ -119,7 +110,7 @@ def train_base(scene: str, data: Path, output: Path, iterations: int, log: Path)
     arguments = base_arguments(scene, data, output, iterations)
     run_dir = output / "base" / "nerfacto" / arguments[arguments.index("--timestamp") + 1]
     if not (run_dir / "nerfstudio_models").exists():
-        run(ns_train(arguments), log)
+        run(ns_train_command(arguments), log)
     return run_dir
 
 
@@ -137,7 +128,7 @@ def step_time(scene: str, work: Path, protocol: Dict, name: str = "cpu-100") -> 
         cpu = {}
         for iterations in (5, 25):
             before = resource.getrusage(resource.RUSAGE_CHILDREN)
-            run(ns_train(edit_arguments(base, paths, scene, {**protocol, "iterations": iterations},
+            run(ns_train_command(edit_arguments(base, paths, scene, {**protocol, "iterations": iterations},
                                         work / "steptime" / f"{kind}-{name}-{iterations}")),
                 work / f"steptime-{kind}-{name}-{iterations}.log")
             after = resource.getrusage(resource.RUSAGE_CHILDREN)
@@ -179,7 +170,7 @@ def _flag_groups(arguments: List[str]) -> List[List[str]]:
 
 def edit(base: Path, paths: Dict[str, Path], scene: str, protocol: Dict, output: Path, log: Path,
          extra: Optional[List[str]] = None) -> Path:
-    run(ns_train(edit_arguments(base, paths, scene, protocol, output, extra)), log)
+    run(ns_train_command(edit_arguments(base, paths, scene, protocol, output, extra)), log)
     return max((output / scene / "sked").iterdir())
 
 
@@ -286,19 +277,18 @@ def _kept_pixels(s: Dict) -> str:
 
 
 def table(results: Dict) -> str:
-    lines = ["| scene | base | set | protocol | variant | novel PSNR kept, base -> edit (drop) | kept pixels only | leak | "
-             "region IoS, base -> edit | region IoS where the target shows the part | IoS (min) | "
-             "target PSNR changed, base -> edit | s |",
-             "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    rows = []
     for row in results["runs"]:
         s = row["summary"]
-        lines.append(
-            f"| {row['scene']} | {row.get('base', 'nerfacto')} | {row['set']} | {row['protocol']} | {row['variant']} | "
-            f"{s['psnr_keep_gt_base']:.1f} -> {s['psnr_keep_gt']:.1f} ({s['psnr_keep_drop']:+.2f}) | {_kept_pixels(s)} | "
-            f"{s['leak']:.4f} | "
-            f"{_region_ios(s)} | {_visible_ios(s)} | {s['ios']:.2f} ({s['ios_min']:.2f}) | "
-            f"{s['psnr_target_changed_base']:.1f} -> {s['psnr_target_changed']:.1f} | {row['seconds']:.0f} |")
-    return "\n".join(lines)
+        rows.append([row["scene"], row.get("base", "nerfacto"), row["set"], row["protocol"], row["variant"],
+                     f"{s['psnr_keep_gt_base']:.1f} -> {s['psnr_keep_gt']:.1f} ({s['psnr_keep_drop']:+.2f})",
+                     _kept_pixels(s), f"{s['leak']:.4f}", _region_ios(s), _visible_ios(s),
+                     f"{s['ios']:.2f} ({s['ios_min']:.2f})",
+                     f"{s['psnr_target_changed_base']:.1f} -> {s['psnr_target_changed']:.1f}", f"{row['seconds']:.0f}"])
+    return harness.markdown_table(["scene", "base", "set", "protocol", "variant", "novel PSNR kept, base -> edit (drop)",
+                                   "kept pixels only", "leak", "region IoS, base -> edit",
+                                   "region IoS where the target shows the part", "IoS (min)",
+                                   "target PSNR changed, base -> edit", "s"], rows)
 
 
 _BEFORE_RESIDUAL = ["--pipeline.model.colour-residual", "False"]
@@ -398,7 +388,7 @@ def rescore(output: Path, work: Path) -> None:
             print(f"{row['scene']} {tag}: not re-scored: {error}".splitlines()[0])
             continue
         print(table({"runs": [row]}).splitlines()[-1], flush=True)
-    write_text_atomically(output, json.dumps(results, indent=2))
+    harness.write_results(output, results)
     print(table(results))
 
 
@@ -426,7 +416,7 @@ def main() -> None:
         print(table(json.loads(args.output.read_text())))
         return
     if args.rescore:
-        claim("edit_quality.py", args.output, args.work)
+        harness.claim("edit_quality.py", args.output, args.work)
         rescore(args.output, args.work)
         return
     if args.step_time:
@@ -438,7 +428,7 @@ def main() -> None:
         protocol = (args.protocols or "cpu-100").split(",")[0]
         print(json.dumps(step_time(args.step_time, work, PROTOCOLS[protocol], protocol), indent=2))
         return
-    claim("edit_quality.py", args.output, args.work)
+    harness.claim("edit_quality.py", args.output, args.work)
     from sked_ns.demo.scenes.catalogue import write_benchmark
 
     scenes = ["hat"] if args.quick else args.scenes.split(",")
@@ -447,7 +437,7 @@ def main() -> None:
     variants = ["default"] if args.quick else [_variant(tag) for tag in args.variants.split(",")]
     base_iterations = 30 if args.quick else BASE_ITERATIONS
     results = {"protocol": __doc__.split("Protocols")[1].split("Writes")[0].strip(), "base_iterations": base_iterations,
-               "base_rays_per_batch": BASE_RAYS, "runs": []}
+               "base_rays_per_batch": BASE_RAYS, "environment": harness.environment("cpu"), "runs": []}
     if args.output.exists() and not args.quick:
         results["runs"] = json.loads(args.output.read_text()).get("runs", [])
     done = {(r["scene"], r.get("base", "nerfacto"), r["protocol"], r["variant"]) for r in results["runs"]}
@@ -478,11 +468,9 @@ def main() -> None:
                 results["runs"].append({"scene": scene, "base": args.base, "set": _set(scene),
                                         "protocol": protocol_name, "variant": variant,
                                         "seconds": seconds, "summary": summary})
-                args.output.parent.mkdir(parents=True, exist_ok=True)
-                write_text_atomically(args.output, json.dumps(results, indent=2))
+                harness.write_results(args.output, results)
                 print(table({"runs": results["runs"][-1:]}).splitlines()[-1], flush=True)
-    print(table(results))
-    print(f"wrote {args.output}")
+    harness.report(table(results), args.output)
 
 
 if __name__ == "__main__":

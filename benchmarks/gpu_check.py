@@ -34,30 +34,20 @@ import argparse
 import gc
 import json
 import os
-import platform
-import resource
 import shlex
 import subprocess
 import sys
-import tempfile
 import time
 import traceback
-from contextlib import contextmanager
 from pathlib import Path
 from typing import Callable, Dict, List, Optional
 
+import harness
 import numpy as np
 import torch
-
-from sked_ns.atomic import write_text_atomically
-
-BENCHMARKS = Path(__file__).resolve().parent
-RESULTS = BENCHMARKS / "results"
-sys.path.insert(0, str(BENCHMARKS))
-from sole_writer import claim  # noqa: E402
+from harness import BENCHMARKS, PROMPT, StageTimer, ns_train_sked, peak_rss_gb, sync
 
 PAPER_ITERATIONS = 10_000
-PROMPT = "a red chef hat"
 EDIT_BASES = {"nerfacto": "nerfacto", "ngp": "instant-ngp", "splat": "splatfacto"}  # each edit and the method of its base
 
 
@@ -92,12 +82,7 @@ class Check:
         return value
 
     def write(self) -> None:
-        write_text_atomically(self.output, json.dumps(self.result, indent=2, default=str))
-
-
-def sync(device: str) -> None:
-    if device == "cuda":
-        torch.cuda.synchronize()
+        harness.write_results(self.output, self.result)
 
 
 def reset_peak(device: str) -> None:
@@ -109,26 +94,6 @@ def reset_peak(device: str) -> None:
 
 def peak_gb(device: str) -> Optional[float]:
     return torch.cuda.max_memory_allocated() / 2**30 if device == "cuda" else None
-
-
-def ns_train_sked(arguments: List[str]):
-    """`ns-train sked ARGUMENTS` parsed by nerfstudio's own command line, prepared as its `main` does."""
-    import tyro
-    from nerfstudio.configs.method_configs import AnnotatedBaseConfigUnion
-
-    config = tyro.cli(AnnotatedBaseConfigUnion, args=["sked", *arguments])
-    if config.data:
-        config.pipeline.datamanager.data = config.data
-    if config.prompt:
-        config.pipeline.model.prompt = config.prompt
-    config.set_timestamp()
-    config.save_config()
-    return config
-
-
-def peak_rss_gb() -> float:
-    """The process's peak resident memory so far (Linux reports KiB)."""
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20
 
 
 def iteration_seconds(starts: List[float], saves: List[float], end: float) -> np.ndarray:
@@ -192,12 +157,7 @@ def edit_arguments(base: Path, work: Path, sd: Path, name: str, iterations: int,
                    render_resolution: Optional[int] = None, extra: str = "") -> List[str]:
     """The user's command line: the paper's settings from the preset; small renders only at --size tiny
     or where RENDER_RESOLUTION asks (the random and sketch views' size); EXTRA: more `ns-train sked` flags."""
-    arguments = [
-        "--load-dir", str(base), "--sketches", str(work / "sketches"), "--prompt", PROMPT,
-        "--max-num-iterations", str(iterations),
-        "--output-dir", str(work / "edits"), "--experiment-name", name, "--vis", "tensorboard",
-        "--machine.device-type", device, "--steps-per-save", str(10**9),
-    ]
+    arguments = harness.sked_flags(base, work, name, device, iterations)
     guidance = ["pipeline.model.guidance:stable-diffusion", "--pipeline.model.guidance.model", str(sd)]
     if size == "tiny":
         render_resolution = render_resolution or 16
@@ -287,14 +247,7 @@ def sd_floor(check: Check, trainer, args, edit: str) -> dict:
     resolution = trainer.pipeline.model.config.guidance_resolution
     image = torch.rand(1, 3, resolution, resolution, device=device, requires_grad=True)
     warmup = min(max(args.warmup, 1), 3)  # compilation (and its recompiles on CUDA) out of the mean
-    times = []
-    for repeat in range(args.floor_repeats + warmup):
-        sync(device)
-        start = time.perf_counter()
-        bare_sd_step(trainer, image)
-        sync(device)
-        if repeat >= warmup:
-            times.append(time.perf_counter() - start)
+    times = harness.timed_calls(lambda: bare_sd_step(trainer, image), args.floor_repeats, device, warmup)
     floor = 1000 * float(np.mean(times))
     check.result["sd_floor_ms"], check.result["sd_floor_edit"] = floor, edit
     ratios_to_sd_floor(check)
@@ -310,33 +263,6 @@ def ratios_to_sd_floor(check: Check) -> None:
             entry["ratio_to_sd_floor"] = entry["ms_per_iteration"] / floor
 
 
-class StageTimer:
-    """Synchronised wall time per stage (costs a little: the split, not the iteration time)."""
-
-    def __init__(self, device: str) -> None:
-        self.device, self.totals = device, {}
-
-    @contextmanager
-    def stage(self, name: str):
-        sync(self.device)
-        start = time.perf_counter()
-        try:
-            yield
-        finally:
-            sync(self.device)
-            self.totals[name] = self.totals.get(name, 0.0) + time.perf_counter() - start
-
-    def wrap(self, owner, attribute: str, name: str) -> Callable[[], None]:
-        original = getattr(owner, attribute)
-
-        def timed(*a, **k):
-            with self.stage(name):
-                return original(*a, **k)
-
-        setattr(owner, attribute, timed)
-        return lambda: setattr(owner, attribute, original)
-
-
 def profile_steps(check: Check, trainer, args) -> dict:
     """Where an iteration's time goes: a synchronised split, then torch.profiler's top operations."""
     device = args.device
@@ -347,13 +273,7 @@ def profile_steps(check: Check, trainer, args) -> dict:
             timer.wrap(guidance, "_encode", "vae_encode"),
             timer.wrap(guidance, "_unet_forward", "unet")]
     steps = range(10**6, 10**6 + args.profile_steps)
-    total = []
-    for step in steps:
-        sync(device)
-        start = time.perf_counter()
-        trainer.train_iteration(step)
-        sync(device)
-        total.append(time.perf_counter() - start)
+    total = harness.timed_steps(trainer, steps, device)
     for restore in undo:
         restore()
     split = {name: 1000 * value / len(steps) for name, value in timer.totals.items()}
@@ -466,32 +386,6 @@ def memory_check(check: Check, args) -> dict:
     return summary
 
 
-def environment(args) -> dict:
-    info = {"python": platform.python_version(), "torch": torch.__version__, "cuda": torch.version.cuda,
-            "device": torch.cuda.get_device_name() if args.device == "cuda" else f"{platform.machine()} CPU"}
-    try:
-        from importlib.metadata import version
-
-        import nerfacc
-        import nerfstudio  # noqa: F401
-
-        info["nerfstudio"] = version("nerfstudio")
-        info["nerfacc"] = nerfacc.__version__
-        try:
-            from nerfacc import csrc  # noqa: F401
-
-            info["nerfacc_kernels"] = "prebuilt extension (nerfacc.csrc)"
-        except ImportError:
-            from sked_ns.models.nerf.nerfacc_kernels import needs_patched_build
-
-            # How the first kernel call will get them (sked_ns/models/nerf/nerfacc_kernels.py).
-            info["nerfacc_kernels"] = ("sked_ns's patched copy, built once per content" if needs_patched_build()
-                                       else "nerfacc's own JIT build on first use")
-    except Exception as error:  # reported, not fatal
-        info["import_error"] = repr(error)
-    return info
-
-
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu", choices=("cuda", "cpu"))
@@ -511,7 +405,7 @@ def main() -> None:
                         help="skip later phases past this much time (default: 540 s on CUDA, a lent GPU's slot; none on CPU)")
     parser.add_argument("--skip", default="", help="comma-separated: an edit and its base (nerfacto, ngp, splat), or "
                         "profile, splat_raster_check, tests, memory")
-    parser.add_argument("--output", type=Path, default=RESULTS / "gpu_check.json")
+    parser.add_argument("--output", type=Path, default=harness.RESULTS / "gpu_check.json")
     parser.add_argument("--workdir", type=Path, default=None)
     args = parser.parse_args()
     full = args.size == "full"
@@ -524,7 +418,7 @@ def main() -> None:
     if args.device == "cuda" and not torch.cuda.is_available():
         parser.error("--device cuda, but torch sees no CUDA device here: pass --device cpu")
 
-    claim("gpu_check.py", args.output, args.workdir)
+    harness.claim("gpu_check.py", args.output, args.workdir)
     budget = args.budget_s if args.budget_s is not None else (540.0 if args.device == "cuda" else float("inf"))
     check = Check(args.output, budget)
     check.result.update(
@@ -534,35 +428,29 @@ def main() -> None:
                   "guidance_resolution": args.render_resolution or (128 if full else 16), "sd_image_size": 512 if full else 32,
                   "guidance_scale": 100, "precision": "fp16 autocast, compiled UNet and VAE encoder" if args.device == "cuda"
                   else "fp32, eager", "prompt": PROMPT},
-        **environment(args),
+        **harness.environment(args.device),
     )
     check.write()
 
     os.environ.setdefault("HF_HUB_OFFLINE", "1")  # never the hub: the diffusion model is built here, random weights
     from sds_iteration import build_random_stable_diffusion
 
-    from sked_ns.demo.base import TinyNerfacto, build_demo_base
-    from sked_ns.demo.scenes import sphere as demo_scene
-    from sked_ns.demo.splat_base import SplatFit, fit_demo_splat_base
-    from sked_ns.sketches.sketch_set import save_sketch_set
+    from sked_ns.demo.base import TinyNerfacto
+    from sked_ns.demo.splat_base import SplatFit
 
-    with tempfile.TemporaryDirectory() as scratch:
-        work = args.workdir or Path(scratch)
+    with harness.work_folder(args.workdir) as work:
         tiny = None if full else TinyNerfacto()
         bases: Dict[str, Path] = {}
 
         def make_bases():
-            demo_scene.write_demo_dataset(work / "data")
-            save_sketch_set(demo_scene.demo_sketch_set(), work / "sketches", overwrite=True)
+            harness.demo_scene(work)
             timing = {}
             for method in [method for edit, method in EDIT_BASES.items() if edit not in skip]:  # none for a skipped edit
                 start = time.perf_counter()
-                if method == "splatfacto":  # fitted with the torch rasterizer: the base is the same on any device
-                    bases[method] = fit_demo_splat_base(work / "data", work / "bases",
-                                                        SplatFit() if full else SplatFit(steps=40, num_gaussians=500))
-                else:
-                    bases[method] = build_demo_base(work / "data", work / "bases", steps=args.base_steps, tiny=tiny,
-                                                    method=method, device=args.device)
+                # Splats are fitted with the torch rasterizer: the base is the same on any device.
+                bases[method] = harness.demo_base(work, method, args.base_steps, tiny, args.device,
+                                                  SplatFit() if full else SplatFit(steps=40, num_gaussians=500),
+                                                  reuse=False)
                 sync(args.device)
                 timing[f"{method}_seconds"] = time.perf_counter() - start
             check.result["bases"] = {**timing, "steps": args.base_steps,
@@ -614,8 +502,7 @@ def main() -> None:
     check.result["failed_phases"] = [name for name, phase in check.result["phases"].items() if phase["status"] != "ok"
                                      and not phase["status"].startswith("skipped")]
     check.write()
-    print(summary_table(check.result))
-    print(f"wrote {args.output}")
+    harness.report(summary_table(check.result), args.output)
     if check.result["failed_phases"]:
         sys.exit(1)
 

@@ -30,56 +30,18 @@ import argparse
 import gc
 import json
 import os
-import platform
-import sys
-import tempfile
 import time
 from contextlib import contextmanager
 from dataclasses import asdict
 from pathlib import Path
 from typing import Callable, Dict, List, Optional
 
+import harness
 import torch
-
-BENCHMARKS = Path(__file__).resolve().parent
-RESULTS = BENCHMARKS / "results"
-sys.path.insert(0, str(BENCHMARKS))
-
-from memory_meter import GB, live_tensor_bytes, metered, part  # noqa: E402
-from sole_writer import claim  # noqa: E402
+from harness import ImageGradient, mark_backward, marked
+from memory_meter import GB, live_tensor_bytes, metered, part
 
 METHODS = {"nerfacto": "nerfacto", "instant-ngp": "instant-ngp", "splatfacto": "splatfacto"}
-PROMPT = "a red chef hat"
-
-
-class ImageGradient:
-    """Guidance stand-in: a fixed random gradient on the rendered image, as score distillation hands the render
-    (SDS's loss has no graph of its own past the image); measured as the part "guidance"."""
-
-    needs_base_render = False
-
-    def __call__(self, view, step: int) -> Dict[str, torch.Tensor]:
-        with part("guidance"):
-            generator = torch.Generator().manual_seed(step)
-            gradient = torch.randn(view.image.shape, generator=generator).to(view.image)
-            return {"image_gradient": (view.image * gradient).sum() * 1e-3}
-
-
-def _marked(owner, attribute: str, names: List[str], context: Callable = part) -> Callable[[], None]:
-    """Wrap owner.attribute so that its n-th call in a step runs inside context(names[n]) (the last name after that):
-    a memory part here, a census phase in step_census.py. Returns a function that restarts the count."""
-    original = getattr(owner, attribute)
-    calls = []
-
-    def wrapped(*args, **kwargs):
-        name = names[min(len(calls), len(names) - 1)]
-        calls.append(name)
-        with context(name):
-            return original(*args, **kwargs)
-
-    setattr(owner, attribute, wrapped)
-    wrapped.calls = calls
-    return lambda: calls.clear()
 
 
 def mark_parts(trainer) -> Callable[[], None]:
@@ -87,30 +49,16 @@ def mark_parts(trainer) -> Callable[[], None]:
     model = trainer.pipeline.model
     resets = []
     if hasattr(model, "_render"):  # NeRF: the random view, the sketch rays, the photo rays
-        resets.append(_marked(model, "_render", ["random_view_render", "sketch_view_render", "photo_anchor_render"]))
+        resets.append(marked(model, "_render", ["random_view_render", "sketch_view_render", "photo_anchor_render"],
+                             part))
     else:  # splats: the supersampled random view, then one render per sketch view
-        resets.append(_marked(model, "_render_supersampled", ["random_view_render", "frozen_base_render"]))
-        resets.append(_marked(model, "_render_edit", ["sketch_view_render"]))
-    resets.append(_marked(model, "render_base", ["frozen_base_render"]))
-    optimizers = trainer.optimizers
-    resets.append(_marked(optimizers, "optimizer_scaler_step_some", ["optimiser"]))  # nerfstudio 1.1.5 steps "some"
-    mark_backward(trainer.grad_scaler)
+        resets.append(marked(model, "_render_supersampled", ["random_view_render", "frozen_base_render"], part))
+        resets.append(marked(model, "_render_edit", ["sketch_view_render"], part))
+    resets.append(marked(model, "render_base", ["frozen_base_render"], part))
+    # nerfstudio 1.1.5 steps "some"
+    resets.append(marked(trainer.optimizers, "optimizer_scaler_step_some", ["optimiser"], part))
+    mark_backward(trainer.grad_scaler, part)
     return lambda: [reset() for reset in resets]
-
-
-def mark_backward(scaler, context: Callable = part) -> None:
-    """nerfstudio's `grad_scaler.scale(loss).backward()` runs inside context("backward")."""
-    original_scale = scaler.scale
-
-    class Backward:
-        def __init__(self, loss):
-            self.loss = loss
-
-        def backward(self, *args, **kwargs):
-            with context("backward"):
-                return self.loss.backward(*args, **kwargs)
-
-    scaler.scale = lambda outputs: Backward(original_scale(outputs))
 
 
 def resident_bytes(trainer) -> Dict[str, int]:
@@ -151,38 +99,23 @@ def measure_step(trainer, step: int, device: str, reset: Callable[[], None]) -> 
 
 
 def time_steps(trainer, first_step: int, count: int, device: str) -> float:
-    times = []
-    for step in range(first_step, first_step + count):
-        if device == "cuda":
-            torch.cuda.synchronize()
-        start = time.perf_counter()
-        trainer.train_iteration(step)
-        if device == "cuda":
-            torch.cuda.synchronize()
-        times.append(time.perf_counter() - start)
+    """The median of COUNT steps' times."""
+    times = harness.timed_steps(trainer, range(first_step, first_step + count), device)
     return float(sorted(times)[len(times) // 2])
 
 
 def nerf_side(work: Path, method: str, base: Path, resolution: int, args, smaller: Optional[Dict] = None) -> Dict:
     """One base kind at one random-view size: the step with chunks (and without, for NeRF bases; SMALLER: its
     entry at a smaller size, to skip an unchunked step this machine cannot hold)."""
-    from gpu_check import ns_train_sked
-
     arguments = [
-        "--load-dir", str(base), "--sketches", str(work / "sketches"), "--max-num-iterations", "100",
-        "--output-dir", str(work / "edits"), "--experiment-name", f"{method}-{resolution}", "--vis", "tensorboard",
-        "--machine.device-type", args.device, "--steps-per-save", str(10**9),
+        *harness.sked_flags(base, work, f"{method}-{resolution}", args.device, prompt=None),
         "--pipeline.model.guidance-resolution", str(resolution),
         "--pipeline.model.field-chunk", str(args.field_chunk),  # the chunked step (then none): not the plan's choice
         *(["--pipeline.model.silhouette-resolution", str(args.silhouette_resolution)] if args.silhouette_resolution else []),
-        "pipeline.model.guidance:reference", "nerfstudio-data", "--data", str(work / "data"),
+        *harness.reference_edit_tail(work),
     ]
-    config = ns_train_sked(arguments)
-    trainer = config.setup(local_rank=0, world_size=1)
-    trainer.setup()
-    trainer.pipeline.prepare_guidance()
+    trainer = harness.set_up_edit(arguments, ImageGradient(part))
     model = trainer.pipeline.model
-    model.guidance = ImageGradient()
     nerf = hasattr(model.config, "field_chunk") and hasattr(model, "_render")
     settings = {"guidance_resolution": resolution, "silhouette_resolution": model.config.silhouette_resolution,
                 "field_chunk": model.config.field_chunk if nerf else None, "model": type(model).__name__}
@@ -249,7 +182,7 @@ def sd_side(work: Path, args) -> Dict:
     if args.sd == "tiny":
         config.image_size = 32
     guidance = config.setup()
-    guidance.prepare(PROMPT, args.device, {})
+    guidance.prepare(harness.PROMPT, args.device, {})
     gc.collect()
     entry: Dict = {"image_size": config.image_size, "architecture": f"SD v1.x ({args.sd}), random weights",
                    "dtype": str(guidance.dtype)}
@@ -284,8 +217,7 @@ def sd_side(work: Path, args) -> Dict:
     image.grad = None
     start = time.perf_counter()
     guidance(view, 1)["sds_loss"].backward()
-    if args.device == "cuda":
-        torch.cuda.synchronize()
+    harness.sync(args.device)
     entry["guidance_step_seconds"] = time.perf_counter() - start
     del guidance
     gc.collect()
@@ -407,69 +339,33 @@ def splat_coefficients(small: Dict, large: Dict) -> Dict[str, float]:
 
 
 def make_bases(work: Path, methods: List[str], args) -> Dict[str, Path]:
-    from sked_ns.demo.base import TinyNerfacto, build_demo_base
-    from sked_ns.demo.scenes import sphere as demo_scene
-    from sked_ns.demo.splat_base import SplatFit, fit_demo_splat_base
-    from sked_ns.sketches.sketch_set import save_sketch_set
+    from sked_ns.demo.base import TinyNerfacto
+    from sked_ns.demo.splat_base import SplatFit
 
-    demo_scene.write_demo_dataset(work / "data")
-    save_sketch_set(demo_scene.demo_sketch_set(), work / "sketches", overwrite=True)
-    tiny = TinyNerfacto() if args.sd == "tiny" else None
-    bases = {}
-    for method in methods:
-        built = sorted((work / "bases").glob(f"*/{method}/*/config.yml"))
-        if built and args.workdir is not None:  # a rerun in the same --workdir reuses its bases
-            bases[method] = built[-1].parent
-        elif method == "splatfacto":
-            bases[method] = fit_demo_splat_base(work / "data", work / "bases",
-                                                SplatFit(steps=args.base_steps) if tiny is None else
-                                                SplatFit(steps=40, num_gaussians=500))
-        else:
-            with few_grid_passes(2 if method != "nerfacto" and tiny is None else None):
-                bases[method] = build_demo_base(work / "data", work / "bases", steps=args.base_steps, tiny=tiny,
-                                                method=method, device=args.device)
-    return bases
-
-
-@contextmanager
-def few_grid_passes(passes: Optional[int]):
-    """At most PASSES of the demo base's full-grid occupancy passes: at instant-ngp's size each costs minutes in
-    torch, and after the first the static scene's occupied cells hardly change (the step's samples follow them)."""
-    if passes is None:
-        yield
-        return
-    from nerfacc import OccGridEstimator
-
-    original, calls = OccGridEstimator._update, []
-
-    def update(self, *args, **kwargs):
-        calls.append(1)
-        if len(calls) <= passes:
-            return original(self, *args, **kwargs)
-
-    OccGridEstimator._update = update
-    try:
-        yield
-    finally:
-        OccGridEstimator._update = original
+    harness.demo_scene(work)
+    tiny = args.sd == "tiny"
+    return {method: harness.demo_base(work, method, args.base_steps, TinyNerfacto() if tiny else None, args.device,
+                                      SplatFit(steps=40, num_gaussians=500) if tiny else SplatFit(steps=args.base_steps),
+                                      grid_passes=None if tiny else 2)
+            for method in methods}
 
 
 def table(result: Dict) -> str:
-    rows = ["| base @ px | NeRF/splat side GB | unchunked GB | chunked / unchunked time | random view GB | sketch views GB "
-            "| backward GB | total fp32 GB | projected fp16 GB |", "|" + "---|" * 9]
     fmt = lambda value: "-" if value is None else f"{value:.2f}"  # noqa: E731
-    for key, entry in result["steps"].items():
-        rows.append(f"| {key} | {fmt(entry.get('nerf_side_peak_gb'))} | {fmt(entry.get('nerf_side_peak_unchunked_gb'))} "
-                    f"| {fmt(entry.get('time_ratio_chunked_to_unchunked'))} "
-                    f"| {fmt(entry['chunked'].get('random_view_render_gb'))} | {fmt(entry['chunked'].get('sketch_view_render_gb'))} "
-                    f"| {fmt(entry['chunked'].get('backward_gb'))} | {fmt(entry.get('total_fp32_gb'))} "
-                    f"| {fmt(entry.get('projected_fp16_total_gb'))} |")
+    rows = [[key, *map(fmt, [entry.get("nerf_side_peak_gb"), entry.get("nerf_side_peak_unchunked_gb"),
+                             entry.get("time_ratio_chunked_to_unchunked"), entry["chunked"].get("random_view_render_gb"),
+                             entry["chunked"].get("sketch_view_render_gb"), entry["chunked"].get("backward_gb"),
+                             entry.get("total_fp32_gb"), entry.get("projected_fp16_total_gb")])]
+            for key, entry in result["steps"].items()]
+    lines = [harness.markdown_table(["base @ px", "NeRF/splat side GB", "unchunked GB", "chunked / unchunked time",
+                                     "random view GB", "sketch views GB", "backward GB", "total fp32 GB",
+                                     "projected fp16 GB"], rows)]
     sd = result.get("stable_diffusion")
     if sd:
-        rows.append(f"SD ({sd['dtype']}): weights {sum(sd['weights_gb'].values()):.2f} GB, VAE encode + backward "
-                    f"{sd['vae_encode_and_backward_gb']:.2f} GB, UNet CFG {sd['unet_cfg_gb']:.2f} GB, guidance step "
-                    f"{sd['guidance_step_gb']:.2f} GB")
-    return "\n".join(rows)
+        lines.append(f"SD ({sd['dtype']}): weights {sum(sd['weights_gb'].values()):.2f} GB, VAE encode + backward "
+                     f"{sd['vae_encode_and_backward_gb']:.2f} GB, UNet CFG {sd['unet_cfg_gb']:.2f} GB, guidance step "
+                     f"{sd['guidance_step_gb']:.2f} GB")
+    return "\n".join(lines)
 
 
 def main() -> None:
@@ -490,10 +386,10 @@ def main() -> None:
                         help="what to measure: steps (each base kind and size), sd (Stable Diffusion's side)")
     parser.add_argument("--keep", action="store_true",
                         help="keep --output's other entries (steps of other bases or sizes, SD's side when not measured)")
-    parser.add_argument("--output", type=Path, default=RESULTS / "memory.json")
+    parser.add_argument("--output", type=Path, default=harness.RESULTS / "memory.json")
     parser.add_argument("--workdir", type=Path, default=None)
     args = parser.parse_args()
-    claim("memory.py", args.output, args.workdir)
+    harness.claim("memory.py", args.output, args.workdir)
     import psutil
 
     args.host_memory_gb = psutil.virtual_memory().total / GB
@@ -508,24 +404,16 @@ def main() -> None:
         "measured": "bytes torch allocates: torch.profiler memory events (CPU) / torch.cuda.max_memory_allocated "
                     "(CUDA); fp32 on the CPU, torch hash grids",
         "projected": "projected_fp16_total_gb: SD's weights and activations halved, the NeRF side as measured",
-        "device": args.device if args.device == "cpu" else torch.cuda.get_device_name(),
-        "machine": platform.processor() or platform.machine(), "torch": torch.__version__,
+        "environment": harness.environment(args.device),
         "sd": args.sd, "base_steps": args.base_steps, "steps": {},
     }
-    from sked_ns.atomic import write_text_atomically
-
-    def write() -> None:
-        args.output.parent.mkdir(parents=True, exist_ok=True)
-        write_text_atomically(args.output, json.dumps(result, indent=2, default=str))
-
     parts = set(args.parts.split(","))
     if args.keep and args.output.is_file():
         kept = json.loads(args.output.read_text())
         result["steps"] = kept.get("steps", {})
         if "sd" not in parts and "stable_diffusion" in kept:
             result["stable_diffusion"] = kept["stable_diffusion"]
-    with tempfile.TemporaryDirectory() as scratch:
-        work = args.workdir or Path(scratch)
+    with harness.work_folder(args.workdir) as work:
         bases = make_bases(work, methods, args) if "steps" in parts else {}
         for method in methods if "steps" in parts else []:
             smaller = None
@@ -534,16 +422,15 @@ def main() -> None:
                 print(f"[{key}] ...", flush=True)
                 entry = smaller = nerf_side(work, method, bases[method], resolution, args, smaller)
                 result["steps"][key] = entry
-                write()
+                harness.write_results(args.output, result)
         if args.sd != "none" and "sd" in parts:
             print("[stable diffusion] ...", flush=True)
             result["stable_diffusion"] = sd_side(work, args)
         for entry in result["steps"].values():
             compose(entry, result.get("stable_diffusion"))
         result["plan_coefficients"] = plan_coefficients(result)
-        write()
-    print(table(result))
-    print(f"wrote {args.output}")
+        harness.write_results(args.output, result)
+    harness.report(table(result), args.output)
 
 
 if __name__ == "__main__":

@@ -15,17 +15,15 @@ linearly to the full count (it is exactly linear in points); the table says so.
 from __future__ import annotations
 
 import argparse
-import json
-import os
-import platform
 import statistics
 import time
 from pathlib import Path
 
+import harness
 import numpy as np
 import torch
+from harness import sync
 from scipy.spatial import cKDTree
-from sole_writer import claim
 
 from sked_ns.demo.scenes.sphere import demo_sketch_set
 from sked_ns.method.preservation import SketchDistanceField
@@ -34,22 +32,11 @@ VIEW_ANGLES = ((20.0, 20.0), (110.0, 30.0), (200.0, 25.0), (290.0, 35.0))
 CDIST_CHUNK = 2048
 
 
-def sync(device: str) -> None:
-    if device == "cuda":
-        torch.cuda.synchronize()
-
-
 def timed(function, repeats: int, device: str) -> tuple[float, object]:
-    """Median wall time in seconds over `repeats` runs (after one warm-up run)."""
-    result = function()
-    sync(device)
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        result = function()
-        sync(device)
-        times.append(time.perf_counter() - start)
-    return statistics.median(times), result
+    """Median wall time in seconds over `repeats` runs (after one warm-up run), and the last run's result."""
+    results = []
+    times = harness.timed_calls(lambda: results.append(function()), repeats, device)
+    return statistics.median(times), results[-1]
 
 
 def pixel_indices(field: SketchDistanceField, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -139,9 +126,9 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--points", type=int, default=1_000_000)
     parser.add_argument("--cdist-points", type=int, default=65_536, help="points cdist is timed on, on the CPU")
-    parser.add_argument("--output", type=Path, default=Path(__file__).parent / "results" / "preservation_lookup.json")
+    parser.add_argument("--output", type=Path, default=harness.RESULTS / "preservation_lookup.json")
     args = parser.parse_args()
-    claim("preservation_lookup.py", args.output)
+    harness.claim("preservation_lookup.py", args.output)
 
     devices = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
     rows = []
@@ -156,29 +143,30 @@ def main() -> None:
                       + (f" | kd-tree {r['kdtree_s']:7.2f} s ({r['speedup_vs_kdtree']:6.0f}x)" if "kdtree_s" in r else "")
                       + f" | cdist {r['cdist_s']:7.2f} s ({r['speedup_vs_cdist']:6.0f}x)", flush=True)
 
-    print("\n| device | px | views | mask px | ours setup (s) | ours compiled (ms) | ours eager (ms) | KD-tree (s) | x KD-tree | cdist (s) | x cdist | max |diff| vs KD-tree |")
-    print("|---|---|---|---|---|---|---|---|---|---|---|---|")
-    for r in rows:
-        kd = (f"{r['kdtree_s']:.2f} | {r['speedup_vs_kdtree']:.0f} | " if "kdtree_s" in r else "- | - | ")
-        diff = f"{r['max_abs_diff_vs_kdtree']:.1e}" if "max_abs_diff_vs_kdtree" in r else "-"
-        scaled = "*" if r["cdist_points_timed"] < r["points"] else ""
-        print(f"| {r['device']} | {r['resolution']} | {r['views']} | {r['mask_pixels']} | {r['ours_setup_s']:.3f} | "
-              f"{r['ours_s'] * 1e3:.1f} | {r['ours_eager_s'] * 1e3:.1f} | {kd}{r['cdist_s']:.2f}{scaled} | {r['speedup_vs_cdist']:.0f} | {diff} |")
-    print("* cdist timed on a subset and scaled linearly to the full point count.")
-    print("Speed-ups use the compiled lookup (one-time compile excluded, listed in the JSON); eager ones are in the JSON.")
-
-    meta = {
+    harness.write_results(args.output, {
         "benchmark": "preservation_lookup",
         "command": "python benchmarks/preservation_lookup.py",
-        "machine": {"cpu_count": os.cpu_count(), "platform": platform.platform(), "torch": torch.__version__,
-                    "torch_threads": torch.get_num_threads(),
-                    "gpu": torch.cuda.get_device_name() if torch.cuda.is_available() else None},
+        "environment": harness.environment(devices[-1]),
         "kdtree": "scipy cKDTree, workers=1 (as the authors' code)",
         "rows": rows,
-    }
-    args.output.parent.mkdir(parents=True, exist_ok=True)
-    args.output.write_text(json.dumps(meta, indent=2))
-    print(f"wrote {args.output}")
+    })
+    harness.report("\n" + table(rows) + "\n* cdist timed on a subset and scaled linearly to the full point count.\n"
+                   "Speed-ups use the compiled lookup (one-time compile excluded, listed in the JSON); eager ones are in "
+                   "the JSON.", args.output)
+
+
+def table(rows: list) -> str:
+    cells = []
+    for r in rows:
+        kd = [f"{r['kdtree_s']:.2f}", f"{r['speedup_vs_kdtree']:.0f}"] if "kdtree_s" in r else ["-", "-"]
+        diff = f"{r['max_abs_diff_vs_kdtree']:.1e}" if "max_abs_diff_vs_kdtree" in r else "-"
+        scaled = "*" if r["cdist_points_timed"] < r["points"] else ""
+        cells.append([r["device"], r["resolution"], r["views"], r["mask_pixels"], f"{r['ours_setup_s']:.3f}",
+                      f"{r['ours_s'] * 1e3:.1f}", f"{r['ours_eager_s'] * 1e3:.1f}", *kd, f"{r['cdist_s']:.2f}{scaled}",
+                      f"{r['speedup_vs_cdist']:.0f}", diff])
+    return harness.markdown_table(["device", "px", "views", "mask px", "ours setup (s)", "ours compiled (ms)",
+                                   "ours eager (ms)", "KD-tree (s)", "x KD-tree", "cdist (s)", "x cdist",
+                                   "max |diff| vs KD-tree"], cells)
 
 
 if __name__ == "__main__":

@@ -19,18 +19,14 @@ from __future__ import annotations
 
 import argparse
 import json
-import platform
-import resource
-import tempfile
 import time
 from contextlib import contextmanager
 from pathlib import Path
 
+import harness
 import numpy as np
 import torch
-from sole_writer import claim
-
-RESULTS = Path(__file__).parent / "results"
+from harness import StageTimer, sync
 
 
 def build_random_stable_diffusion(folder: Path, size: str) -> Path:
@@ -107,64 +103,27 @@ def bare_sd_step(trainer, image: torch.Tensor) -> None:
     latents.sum().backward()  # outside autocast, as the edit's backward
 
 
-class StageTimer:
-    """Wall time per stage, between device synchronisations."""
-
-    def __init__(self, device: str) -> None:
-        self.device, self.totals, self.enabled = device, {}, True
-
-    def sync(self) -> None:
-        if self.device == "cuda":
-            torch.cuda.synchronize()
-
-    @contextmanager
-    def stage(self, name: str):
-        if not self.enabled:
-            yield
-            return
-        self.sync()
-        start = time.perf_counter()
-        try:
-            yield
-        finally:
-            self.sync()
-            self.totals[name] = self.totals.get(name, 0.0) + time.perf_counter() - start
-
-    def wrap(self, owner, attribute: str, name: str) -> None:
-        original = getattr(owner, attribute)
-
-        def timed(*args, **kwargs):
-            with self.stage(name):
-                return original(*args, **kwargs)
-
-        setattr(owner, attribute, timed)
-
-
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--size", choices=("full", "tiny"), default="full")
     parser.add_argument("--iterations", type=int, default=30)
     parser.add_argument("--resolution", type=int, default=128, help="random-view and sketch-view render size")
     parser.add_argument("--image-size", type=int, default=512, help="SD input size (SD's native 512)")
-    parser.add_argument("--output", type=Path, default=RESULTS / "sds_iteration.json")
+    parser.add_argument("--output", type=Path, default=harness.RESULTS / "sds_iteration.json")
     parser.add_argument("--workdir", type=Path, default=None)
     args = parser.parse_args()
-    claim("sds_iteration.py", args.output, args.workdir)
+    harness.claim("sds_iteration.py", args.output, args.workdir)
 
-    from sked_ns.demo.base import build_demo_base
-    from sked_ns.demo.scenes import sphere as demo_scene
+    from sked_ns.demo.base import TinyNerfacto
     from sked_ns.engine.edit_run import edit_config
-    from sked_ns.sketches.sketch_set import save_sketch_set
 
     device = "cuda" if torch.cuda.is_available() else "cpu"
-    with tempfile.TemporaryDirectory() as scratch:
-        work = args.workdir or Path(scratch)
-        demo_scene.write_demo_dataset(work / "data")
-        base = build_demo_base(work / "data", work / "base", steps=300)
-        save_sketch_set(demo_scene.demo_sketch_set(), work / "sketches", overwrite=True)
+    with harness.work_folder(args.workdir) as work:
+        harness.demo_scene(work)
+        base = harness.demo_base(work, "nerfacto", 300, TinyNerfacto())
         sd = build_random_stable_diffusion(work / f"sd-{args.size}", args.size)
 
-        config = edit_config(base, work / "data", work / "sketches", work / "edits", prompt="a red chef hat",
+        config = edit_config(base, work / "data", work / "sketches", work / "edits", prompt=harness.PROMPT,
                              guidance="stable-diffusion", iterations=args.iterations + 1,
                              guidance_resolution=args.resolution, silhouette_resolution=args.resolution,
                              device=device, steps_per_save=10**9)
@@ -180,24 +139,13 @@ def main() -> None:
         timer.wrap(model, "_render", "render")
         timer.wrap(guidance, "_encode", "vae_encode")
         timer.wrap(guidance, "_unet_forward", "unet")
-        original_step = trainer.train_iteration
-
         if device == "cuda":
             torch.cuda.reset_peak_memory_stats()
-        first_start = time.perf_counter()
-        original_step(0)
-        timer.sync()
-        first = time.perf_counter() - first_start
+        (first,) = harness.timed_steps(trainer, [0], device)
 
         # Split, with synchronisations.
         timer.totals.clear()
-        iteration_totals = []
-        for step in range(1, args.iterations + 1):
-            timer.sync()
-            start = time.perf_counter()
-            original_step(step)
-            timer.sync()
-            iteration_totals.append(time.perf_counter() - start)
+        iteration_totals = harness.timed_steps(trainer, range(1, args.iterations + 1), device)
         split = {name: 1000 * value / args.iterations for name, value in timer.totals.items()}
         split["losses_and_backward_and_step"] = 1000 * float(np.mean(iteration_totals)) - sum(split.values())
 
@@ -205,27 +153,20 @@ def main() -> None:
         timer.enabled = False
         start = time.perf_counter()
         for step in range(args.iterations + 1, 2 * args.iterations + 1):
-            original_step(step)
-        timer.sync()
+            trainer.train_iteration(step)
+        sync(device)
         iteration_ms = 1000 * (time.perf_counter() - start) / args.iterations
 
         # The bare (compiled) SD cost on a fixed input, same process and autocast: VAE encode fwd+bwd + UNet batch 2.
         image = torch.rand(1, 3, args.resolution, args.resolution, device=device, requires_grad=True)
-        bare = []
-        for repeat in range(args.iterations + 1):
-            timer.sync()
-            start = time.perf_counter()
-            bare_sd_step(trainer, image)
-            timer.sync()
-            if repeat:
-                bare.append(time.perf_counter() - start)
+        bare = harness.timed_calls(lambda: bare_sd_step(trainer, image), args.iterations, device)
         bare_ms = 1000 * float(np.mean(bare))
-        peak = (torch.cuda.max_memory_allocated() / 2**30 if device == "cuda"
-                else resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20)
+        peak = torch.cuda.max_memory_allocated() / 2**30 if device == "cuda" else harness.peak_rss_gb()
 
-    machine = torch.cuda.get_device_name() if device == "cuda" else f"{platform.machine()} CPU, {torch.get_num_threads()} threads"
+    environment = harness.environment(device)
     result = {
-        "machine": machine, "device": device, "diffusion_model": f"SD v1.x architecture ({args.size}), random weights",
+        "environment": environment, "device": device,
+        "diffusion_model": f"SD v1.x architecture ({args.size}), random weights",
         "precision": "fp16, compiled UNet and VAE encoder" if device == "cuda" else "fp32, eager",
         "resolution": args.resolution, "iterations": args.iterations,
         "first_iteration_s (compilation included)": first,
@@ -236,15 +177,13 @@ def main() -> None:
         "peak_memory_gb": peak,
         "projected_10k_iterations_min": (first + 10_000 * iteration_ms / 1000) / 60,
     }
-    args.output.parent.mkdir(parents=True, exist_ok=True)
-    args.output.write_text(json.dumps(result, indent=2))
-    print(f"{machine}; {result['diffusion_model']}; {result['precision']}")
-    print("| stage | ms |\n|---|---|")
-    for name, value in split.items():
-        print(f"| {name} | {value:.1f} |")
-    print(f"iteration {iteration_ms:.1f} ms, bare SD {bare_ms:.1f} ms (x{iteration_ms / bare_ms:.2f}), first "
-          f"{first:.1f} s, peak {peak:.2f} GB, 10k iterations ~{result['projected_10k_iterations_min']:.1f} min")
-    print(f"wrote {args.output}")
+    harness.write_results(args.output, result)
+    print(f"{environment['device']}, {environment['torch_threads']} threads; {result['diffusion_model']}; "
+          f"{result['precision']}")
+    harness.report(harness.markdown_table(["stage", "ms"], [[name, f"{value:.1f}"] for name, value in split.items()])
+                   + f"\niteration {iteration_ms:.1f} ms, bare SD {bare_ms:.1f} ms (x{iteration_ms / bare_ms:.2f}), "
+                   f"first {first:.1f} s, peak {peak:.2f} GB, 10k iterations "
+                   f"~{result['projected_10k_iterations_min']:.1f} min", args.output)
 
 
 if __name__ == "__main__":

@@ -19,20 +19,15 @@ from __future__ import annotations
 
 import argparse
 import json
-import platform
-import resource
 import subprocess
 import sys
-import tempfile
 import time
 from pathlib import Path
 
+import harness
 import numpy as np
-from sole_writer import claim
+from harness import commit, sync
 
-from sked_ns.atomic import write_text_atomically
-
-RESULTS = Path(__file__).parent / "results"
 ITERATION_DIVISOR = {"cpu": 100, "cuda": 1}
 RESOLUTION_DIVISOR = {"cpu": 4, "cuda": 1}
 EVAL_SIZE = 48
@@ -135,13 +130,12 @@ def run_one(run: dict, workdir: Path, prepared: dict, device: str) -> dict:
     if run["mixed_precision"] and device == "cpu":
         trainer.mixed_precision = True  # nerfstudio turns autocast off on a CPU; bf16 is what a CPU has
     trainer.pipeline.prepare_guidance()  # outside the timing: loading the guidance is set-up
+    sync(device)
     if device == "cuda":
-        torch.cuda.synchronize()
         torch.cuda.reset_peak_memory_stats()
     start = time.perf_counter()
     trainer.train()
-    if device == "cuda":
-        torch.cuda.synchronize()
+    sync(device)
     seconds = time.perf_counter() - start
 
     model = trainer.pipeline.model
@@ -159,8 +153,7 @@ def run_one(run: dict, workdir: Path, prepared: dict, device: str) -> dict:
             "psnr_outside": psnr_outside(edit["rgb"], base["rgb"], mask),
             "psnr_target_inside": psnr_inside(edit["rgb"], target, mask),
         })
-    peak = (torch.cuda.max_memory_allocated() / 2**20 if device == "cuda"
-            else resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024)
+    peak = torch.cuda.max_memory_allocated() / 2**20 if device == "cuda" else harness.peak_rss_gb() * 1024
     return {
         **run,
         "seconds_total": seconds,
@@ -234,27 +227,17 @@ def plot(summary: list[dict], path: Path, label: str) -> None:
 
 
 def table(summary: list[dict]) -> str:
-    lines = ["| run | group | its | px | spr | mp | hash | s total | ms/it | peak MB | IoS | PSNR out | PSNR target | front |",
-             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
-    for r in summary:
-        lines.append(
-            f"| {r['name']}{' (' + r['note'] + ')' if 'note' in r else ''} | {r['group']} | {r['iterations']} | {r['guidance_resolution']} | {r['samples_per_ray_scale']:g} "
-            f"| {'on' if r['mixed_precision'] else 'off'} | 2^{r['log2_hashmap_size']} | {r['seconds_total']:.1f} "
-            f"| {r['ms_per_iteration']:.0f} | {r['peak_memory_mb']:.0f} | {r['ios']:.3f} | {r['psnr_outside']:.1f} "
-            f"| {r['psnr_target_inside']:.1f} | {'*' if r['pareto'] else ''} |")
-    return "\n".join(lines)
-
-
-def commit() -> str:
-    """The measured code's commit (the checkout this script runs from)."""
-    result = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
-                            cwd=Path(__file__).parent)
-    return result.stdout.strip() or "unknown"
+    return harness.markdown_table(
+        ["run", "group", "its", "px", "spr", "mp", "hash", "s total", "ms/it", "peak MB", "IoS", "PSNR out",
+         "PSNR target", "front"],
+        [[r["name"] + (f" ({r['note']})" if "note" in r else ""), r["group"], r["iterations"], r["guidance_resolution"],
+          f"{r['samples_per_ray_scale']:g}", "on" if r["mixed_precision"] else "off", f"2^{r['log2_hashmap_size']}",
+          f"{r['seconds_total']:.1f}", f"{r['ms_per_iteration']:.0f}", f"{r['peak_memory_mb']:.0f}", f"{r['ios']:.3f}",
+          f"{r['psnr_outside']:.1f}", f"{r['psnr_target_inside']:.1f}", "*" if r["pareto"] else ""] for r in summary])
 
 
 def write_partial(output: Path, results: list[dict]) -> None:
-    output.parent.mkdir(parents=True, exist_ok=True)
-    write_text_atomically(output.with_suffix(".partial.json"), json.dumps({"commit": commit(), "runs": results}, indent=2))
+    harness.write_results(output.with_suffix(".partial.json"), {"commit": commit(), "runs": results})
 
 
 def carried_over(older: dict, names: list[str], source: str) -> list[dict]:
@@ -267,7 +250,7 @@ def carried_over(older: dict, names: list[str], source: str) -> list[dict]:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--quick", action="store_true", help="one scene, 4 iterations (a smoke run)")
-    parser.add_argument("--output", type=Path, default=RESULTS / "speed_accuracy.json")
+    parser.add_argument("--output", type=Path, default=harness.RESULTS / "speed_accuracy.json")
     parser.add_argument("--workdir", type=Path, default=None, help="keep bases and edits here (default: a temp dir)")
     parser.add_argument("--replot", action="store_true", help="rebuild summary, table and plot from --output's runs")
     parser.add_argument("--skip", action="append", default=[], metavar="NAME",
@@ -285,7 +268,7 @@ def main() -> None:
         data = json.loads(args.output.read_text())
         data["summary"] = summarise(data["runs"])
         label = f"{data['protocol']}\n{data['machine']}; reference guidance, tiny demo scenes"
-        write_text_atomically(args.output, json.dumps(data, indent=2))
+        harness.write_results(args.output, data)
         plot(data["summary"], args.output.with_suffix(".png"), label)
         print(table(data["summary"]))
         return
@@ -296,16 +279,14 @@ def main() -> None:
         result = run_one(request["run"], Path(request["workdir"]), request["prepared"], device)
         print("RESULT " + json.dumps(result))
         return
-    claim("speed_accuracy.py", args.output, args.workdir)
+    harness.claim("speed_accuracy.py", args.output, args.workdir)
 
     runs = [run for run in plan(device, args.quick) if run["name"] not in args.skip
             and (not args.only or run["name"] in args.only) and (not args.scene or run["scene"] in args.scene)]
     kept = []
     if args.keep_from is not None:
         kept = carried_over(json.loads(args.keep_from.read_text()), args.skip, args.keep_from.name)
-    with tempfile.TemporaryDirectory() as scratch:
-        workdir = args.workdir or Path(scratch)
-        workdir.mkdir(parents=True, exist_ok=True)
+    with harness.work_folder(args.workdir) as workdir:
         prepared = prepare(workdir, [run["log2_hashmap_size"] for run in runs], base_steps=60 if args.quick else 400)
         prepared = {"data": str(prepared["data"]), "bases": prepared["bases"]}
         results = []
@@ -325,17 +306,17 @@ def main() -> None:
     summary = summarise(results)
     protocol = (f"{'CPU' if device == 'cpu' else 'GPU'} protocol: iterations / {ITERATION_DIVISOR[device]}, "
                 f"render sizes / {RESOLUTION_DIVISOR[device]} of each preset")
-    machine = torch.cuda.get_device_name() if device == "cuda" else f"{platform.processor() or platform.machine()}, " \
-              f"{torch.get_num_threads()} threads, no GPU"
+    environment = harness.environment(device)
+    machine = environment["device"] if device == "cuda" else \
+        f"{environment['machine']}, {environment['torch_threads']} threads, no GPU"
     label = f"{protocol}\n{machine}; reference guidance, tiny demo scenes"
-    args.output.parent.mkdir(parents=True, exist_ok=True)
-    write_text_atomically(args.output, json.dumps({"protocol": protocol, "machine": machine, "device": device, "quick": args.quick,
-                                       "commit": commit(), "summary": summary, "runs": results}, indent=2))
+    harness.write_results(args.output, {"protocol": protocol, "machine": machine, "device": device, "quick": args.quick,
+                                        "commit": environment["commit"], "environment": environment,
+                                        "summary": summary, "runs": results})
     plot(summary, args.output.with_suffix(".png"), label)
     args.output.with_suffix(".partial.json").unlink(missing_ok=True)  # superseded by the full results
     print(label.replace("\n", "; "))
-    print(table(summary))
-    print(f"wrote {args.output} and {args.output.with_suffix('.png')}")
+    harness.report(table(summary), args.output, args.output.with_suffix(".png"))
 
 
 if __name__ == "__main__":

@@ -31,37 +31,16 @@ import contextlib
 import json
 import math
 import os
-import sys
-import tempfile
 from pathlib import Path
 from typing import Callable, Dict, List, Optional
 
+import harness
 import torch
-
-BENCHMARKS = Path(__file__).resolve().parent
-RESULTS = BENCHMARKS / "results"
-sys.path.insert(0, str(BENCHMARKS))
-from dispatch_census import DispatchCensus, module_tensors  # noqa: E402
-from sole_writer import claim  # noqa: E402
+from dispatch_census import DispatchCensus, module_tensors
+from harness import ImageGradient, mark_backward, marked
 
 PHASES = ["random_view_render", "sketch_view_render", "frozen_base", "preservation", "losses", "backward", "optimiser",
           "trainer"]
-
-
-class ImageGradient:
-    """Guidance stand-in: a fixed random gradient on the rendered image, as score distillation hands the render."""
-
-    needs_base_render = False
-
-    def __init__(self) -> None:
-        self.gradients: Dict = {}
-
-    def __call__(self, view, step: int) -> Dict[str, torch.Tensor]:
-        # Made once per image shape, on the device: SD's own step is measured apart, not its inputs' copies.
-        key = tuple(view.image.shape)
-        if key not in self.gradients:
-            self.gradients[key] = torch.randn(key, generator=torch.Generator().manual_seed(0)).to(view.image)
-        return {"image_gradient": (view.image * self.gradients[key]).sum() * 1e-3}
 
 
 class Counters:
@@ -75,60 +54,52 @@ class Counters:
         self.samples.clear()
         self.calls.clear()
 
+    def count(self, samples: str) -> Callable:
+        """What counts a call's first argument under `samples`."""
 
-def _numel_rows(batch) -> int:
-    """Samples in a network's input: positions (..., 3) or RaySamples."""
-    return math.prod(batch.shape[:-1] if isinstance(batch, torch.Tensor) else batch.shape)
+        def counted(*args) -> None:
+            if args:
+                batch = args[0]  # positions (..., 3) or RaySamples
+                self.samples[samples] += math.prod(batch.shape[:-1] if isinstance(batch, torch.Tensor) else batch.shape)
+                self.calls[samples] += 1
 
-
-def wrap(owner, attribute: str, phase: Callable, name: Optional[str] = None, counters: Optional[Counters] = None,
-         samples: Optional[str] = None) -> None:
-    """owner.attribute counted under the phase `name` (if given), its first argument's samples under `samples`."""
-    original = getattr(owner, attribute)
-
-    def wrapped(*args, **kwargs):
-        if counters is not None and samples is not None and args:
-            counters.samples[samples] += _numel_rows(args[0])
-            counters.calls[samples] += 1
-        with (phase(name) if name is not None else contextlib.nullcontext()):
-            return original(*args, **kwargs)
-
-    setattr(owner, attribute, wrapped)
+        return counted
 
 
 def instrument(trainer, state: Dict, counters: Counters) -> None:
-    """Name the step's phases (memory.py's markers, with census phases for its memory parts) and count samples
-    through the networks."""
-    from memory import _marked, mark_backward
+    """Name the step's phases (memory.py's parts, as census phases) and count samples through the networks."""
 
-    def phase(name: str):
+    def phase(name: Optional[str]):
         census = state.get("census")
-        return census.phase(name) if census is not None else contextlib.nullcontext()
+        return census.phase(name) if census is not None and name is not None else contextlib.nullcontext()
+
+    def wrap(owner, attribute: str, name: Optional[str], samples: Optional[str] = None) -> None:
+        harness.wrap(owner, attribute, lambda: phase(name), counters.count(samples) if samples else None)
 
     model = trainer.pipeline.model
     if hasattr(model, "_render"):  # NeRF: the random view, the sketch rays, the photo rays
-        state["reset_renders"] = _marked(model, "_render", ["random_view_render", "sketch_view_render",
-                                                             "photo_anchor_render"], phase)
+        state["reset_renders"] = marked(model, "_render", ["random_view_render", "sketch_view_render",
+                                                           "photo_anchor_render"], phase)
     else:
-        wrap(model, "_render_supersampled", phase, "random_view_render")
-        wrap(model, "_render_edit", phase, "sketch_view_render")
-    wrap(model, "render_base", phase, "frozen_base")
+        wrap(model, "_render_supersampled", "random_view_render")
+        wrap(model, "_render_edit", "sketch_view_render")
+    wrap(model, "render_base", "frozen_base")
     # Every network evaluation goes through its get_density (a field's forward too): one call per chunk.
     base = getattr(model, "frozen_base", None)  # splats keep their base as reference Gaussians
     if base is not None:
-        wrap(base.field, "get_density", phase, "frozen_base", counters, "base_field_samples")
+        wrap(base.field, "get_density", "frozen_base", "base_field_samples")
         for network in getattr(base, "proposal_networks", None) or []:
-            wrap(network, "get_density", phase, "frozen_base", counters, "base_proposal_samples")
-        wrap(model.field, "get_density", phase, None, counters, "edit_field_samples")
+            wrap(network, "get_density", "frozen_base", "base_proposal_samples")
+        wrap(model.field, "get_density", None, "edit_field_samples")
         for network in getattr(model, "proposal_networks", None) or []:
-            wrap(network, "get_density", phase, None, counters, "edit_proposal_samples")
+            wrap(network, "get_density", None, "edit_proposal_samples")
     if hasattr(model, "sketch_field"):
-        wrap(model.sketch_field, "preservation_weight", phase, "preservation")
-        wrap(model.sketch_field, "hull_distance", phase, "preservation")
-    wrap(model, "objective", phase, "losses")
+        wrap(model.sketch_field, "preservation_weight", "preservation")
+        wrap(model.sketch_field, "hull_distance", "preservation")
+    wrap(model, "objective", "losses")
     if hasattr(model, "_sampling_losses"):
-        wrap(model, "_sampling_losses", phase, "losses")
-    wrap(trainer.optimizers, "optimizer_scaler_step_some", phase, "optimiser")
+        wrap(model, "_sampling_losses", "losses")
+    wrap(trainer.optimizers, "optimizer_scaler_step_some", "optimiser")
     mark_backward(trainer.grad_scaler, phase)
 
 
@@ -180,54 +151,20 @@ def count_step(trainer, step: int, state: Dict, counters: Counters) -> Dict:
     return result
 
 
-def ns_train_sked(arguments: List[str]):
-    from gpu_check import ns_train_sked as parse
-
-    return parse(arguments)
-
-
-def setup_edit(work: Path, method: str, base: Path, args, resolution: int, sketch_resolution: int, chunk: Optional[int]):
-    arguments = [
-        "--load-dir", str(base), "--sketches", str(work / "sketches"), "--max-num-iterations", "100",
-        "--output-dir", str(work / "edits"), "--experiment-name", f"{method}-{resolution}", "--vis", "tensorboard",
-        "--machine.device-type", "cpu", "--steps-per-save", str(10**9), "--prompt", "a red chef hat",
-        "--pipeline.model.guidance-resolution", str(resolution),
-        "--pipeline.model.silhouette-resolution", str(sketch_resolution),
-        *(["--pipeline.model.field-chunk", str(chunk)] if chunk is not None else []),
-        *args.extra,
-        "pipeline.model.guidance:reference", "nerfstudio-data", "--data", str(work / "data"),
-    ]
-    config = ns_train_sked(arguments)
-    trainer = config.setup(local_rank=0, world_size=1)
-    trainer.setup()
-    trainer.pipeline.prepare_guidance()
-    trainer.pipeline.model.guidance = ImageGradient()
-    return trainer
+def edit_flags(work: Path, method: str, base: Path, args, resolution: int, sketch_resolution: int,
+               output: str = "edits") -> List[str]:
+    return [*harness.sked_flags(base, work, f"{method}-{resolution}", "cpu", output=output),
+            "--pipeline.model.guidance-resolution", str(resolution),
+            "--pipeline.model.silhouette-resolution", str(sketch_resolution)]
 
 
 def make_bases(work: Path, methods: List[str], args) -> Dict[str, Path]:
-    from sked_ns.demo.base import build_demo_base
-    from sked_ns.demo.scenes import sphere as demo_scene
-    from sked_ns.demo.splat_base import SplatFit, fit_demo_splat_base
-    from sked_ns.sketches.sketch_set import save_sketch_set
+    from sked_ns.demo.splat_base import SplatFit
 
-    if not (work / "data").exists():
-        demo_scene.write_demo_dataset(work / "data")
-        save_sketch_set(demo_scene.demo_sketch_set(), work / "sketches", overwrite=True)
-    bases = {}
-    for method in methods:
-        built = sorted((work / "bases").glob(f"*/{method}/*/config.yml"))
-        if built:
-            bases[method] = built[-1].parent
-        elif method == "splatfacto":
-            bases[method] = fit_demo_splat_base(work / "data", work / "bases", SplatFit(steps=args.base_steps))
-        else:
-            from memory import few_grid_passes
-
-            with few_grid_passes(2 if method != "nerfacto" else None):  # instant-ngp's full-grid passes take minutes
-                bases[method] = build_demo_base(work / "data", work / "bases", steps=args.base_steps, tiny=None,
-                                                method=method)
-    return bases
+    harness.demo_scene(work, rewrite=False)
+    # instant-ngp's full-grid passes take minutes
+    return {method: harness.demo_base(work, method, args.base_steps, splat_fit=SplatFit(steps=args.base_steps),
+                                      grid_passes=2) for method in methods}
 
 
 def census_of(work: Path, method: str, base: Path, args, proposal_update: bool = True) -> Dict:
@@ -238,7 +175,9 @@ def census_of(work: Path, method: str, base: Path, args, proposal_update: bool =
     if chunk is None:  # the plan's choice at the reported size, on the named device
         chosen = planned_chunk(work, method, base, args)
         chunk = int(chosen / ratio) if chosen > 0 else 0
-    trainer = setup_edit(work, method, base, args, args.measure_resolution, sketch, chunk)
+    trainer = harness.set_up_edit([*edit_flags(work, method, base, args, args.measure_resolution, sketch),
+                                   *(["--pipeline.model.field-chunk", str(chunk)] if chunk is not None else []),
+                                   *args.extra, *harness.reference_edit_tail(work)], ImageGradient(cached=True))
     model = trainer.pipeline.model
     state: Dict = {}
     counters = Counters()
@@ -281,15 +220,9 @@ def planned_chunk(work: Path, method: str, base: Path, args) -> int:
     for name, value in patched.items():
         setattr(memory_plan, name, value)
     try:
-        arguments = [
-            "--load-dir", str(base), "--sketches", str(work / "sketches"), "--max-num-iterations", "100",
-            "--output-dir", str(work / "plans"), "--experiment-name", f"{method}-{args.resolution}", "--vis",
-            "tensorboard", "--machine.device-type", "cpu", "--prompt", "a red chef hat",
-            "--pipeline.model.guidance-resolution", str(args.resolution),
-            "--pipeline.model.silhouette-resolution", str(args.silhouette_resolution), *args.extra,
-            "pipeline.model.guidance:reference", "nerfstudio-data", "--data", str(work / "data"),
-        ]
-        return int(getattr(ns_train_sked(arguments).pipeline.model, "field_chunk", 0))
+        arguments = [*edit_flags(work, method, base, args, args.resolution, args.silhouette_resolution, "plans"),
+                     *args.extra, *harness.reference_edit_tail(work)]
+        return int(getattr(harness.ns_train_sked(arguments).pipeline.model, "field_chunk", 0))
     finally:
         for name, value in saved.items():
             setattr(memory_plan, name, value)
@@ -311,15 +244,12 @@ def table(results: Dict) -> str:
 
 def markdown(before: Dict, after: Dict) -> str:
     """The before/after table of docs/benchmarks.md (Step census)."""
-    rows = ["| step | compute ops | syncs | chunked calls | frozen-base proposal samples |", "|---|---|---|---|---|"]
-    for key in after:
-        if not isinstance(after[key], dict) or "compute_ops" not in after[key]:
-            continue
-        old, new = before.get(key, {}), after[key]
-        cells = [f"{old[name]:,} -> {new[name]:,}" if name in old else f"{new[name]:,}"
-                 for name in ("compute_ops", "syncs", "chunked_calls", "base_proposal_samples")]
-        rows.append(f"| {key} | " + " | ".join(cells) + " |")
-    return "\n".join(rows)
+    names = ("compute_ops", "syncs", "chunked_calls", "base_proposal_samples")
+    rows = [[key, *(f"{before[key][name]:,} -> {entry[name]:,}" if name in before.get(key, {}) else f"{entry[name]:,}"
+                    for name in names)]
+            for key, entry in after.items() if isinstance(entry, dict) and "compute_ops" in entry]
+    return harness.markdown_table(["step", "compute ops", "syncs", "chunked calls", "frozen-base proposal samples"],
+                                  rows)
 
 
 def main() -> None:
@@ -335,7 +265,7 @@ def main() -> None:
     parser.add_argument("--base-steps", type=int, default=60, help="fitting steps of the demo bases")
     parser.add_argument("--workdir", type=Path, default=None, help="reuse bases built there")
     parser.add_argument("--label", default=None, help="store the results under this label in the file")
-    parser.add_argument("--out", type=Path, default=RESULTS / "step_census.json")
+    parser.add_argument("--out", type=Path, default=harness.RESULTS / "step_census.json")
     parser.add_argument("--markdown", action="store_true", help="print the file's before/after table and stop")
     parser.add_argument("extra", nargs="*", help="more ns-train sked flags (before the dataparser)")
     args = parser.parse_args()
@@ -343,12 +273,10 @@ def main() -> None:
         stored = json.loads(args.out.read_text())
         print(markdown(stored.get("before", {}), {k: v for k, v in stored.items() if k != "before"}))
         return
-    claim("step_census.py", args.out, args.workdir)
+    harness.claim("step_census.py", args.out, args.workdir)
     torch.manual_seed(0)
     os.environ.setdefault("HF_HUB_OFFLINE", "1")
-    with (contextlib.nullcontext(str(args.workdir)) if args.workdir else tempfile.TemporaryDirectory()) as folder:
-        work = Path(folder)
-        work.mkdir(parents=True, exist_ok=True)
+    with harness.work_folder(args.workdir) as work:
         bases = make_bases(work, args.bases, args)
         results: Dict = {}
         for method in args.bases:
@@ -358,18 +286,15 @@ def main() -> None:
                 results[f"{key}-no-proposal-update"] = census_of(work, method, bases[method], args,
                                                                  proposal_update=False)
             write(args, results)  # each kind as soon as it is counted
-    print(table(results))
-    print(f"wrote {args.out}")
+    harness.report(table(results), args.out)
 
 
 def write(args, results: Dict) -> None:
+    """Each kind's entry into --out (under --label, when given), the others' kept."""
     existing = json.loads(args.out.read_text()) if args.out.exists() else {}
-    if args.label:
-        existing.setdefault(args.label, {}).update(results)
-    else:
-        existing.update(results)
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(existing, indent=1) + "\n")
+    (existing.setdefault(args.label, {}) if args.label else existing).update(results)
+    existing["environment"] = harness.environment("cpu")
+    harness.write_results(args.out, existing)
 
 
 if __name__ == "__main__":

@@ -24,17 +24,14 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 import time
 from pathlib import Path
 from typing import Dict
 
+import edit_quality as eq
+import harness
 import numpy as np
 import torch
-
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-import edit_quality as eq  # noqa: E402
-from sole_writer import claim  # noqa: E402
 
 CANDIDATES = {
     "default": ("", []),
@@ -102,11 +99,9 @@ def mean_appearance() -> None:
 
 
 def ns_train(arguments, patch: str):
-    here = str(Path(__file__).resolve().parent)
-    code = (f"import sys; sys.path.insert(0, {here!r}); import unbounded_leak; unbounded_leak.{patch}()\n" if patch else "")
-    code += ("import sys; from sked_ns.method.options import without_lpips; from nerfstudio.scripts.train import entrypoint; "
-             "sys.argv = ['ns-train'] + sys.argv[1:]\nwith without_lpips(): entrypoint()")
-    return [sys.executable, "-c", code, *arguments]
+    """`ns-train ARGUMENTS` with the code candidate PATCH (a function of this module) applied first."""
+    setup = f"import sys; sys.path.insert(0, {str(harness.BENCHMARKS)!r}); import unbounded_leak; unbounded_leak.{patch}()\n"
+    return harness.ns_train_command(arguments, setup if patch else "")
 
 
 def candidates(work: Path, output: Path, names) -> None:
@@ -126,7 +121,7 @@ def candidates(work: Path, output: Path, names) -> None:
         metrics = eq.score(edit_run, paths, scene_work / f"cand-{name}.eval.json", scene_work / f"cand-{name}.eval.log")
         rows.append({"tag": name, "patch": patch, "flags": flags, "seconds": time.perf_counter() - start,
                      "summary": eq.summarise(metrics), "where": where(edit_run), "parts": parts(edit_run, work)["mean"]})
-        output.write_text(json.dumps(rows, indent=1))
+        harness.write_results(output, rows)
         print(name, json.dumps({key: rows[-1]["summary"][key] for key in ("leak", "psnr_keep_drop", "psnr_target_changed")}))
 
 
@@ -214,7 +209,7 @@ def main() -> None:
     parser.add_argument("--candidates", default=",".join(CANDIDATES))
     args = parser.parse_args()
     if args.command == "candidates":
-        claim("unbounded_leak.py", args.output, args.work)
+        harness.claim("unbounded_leak.py", args.output, args.work)
         candidates(args.work, args.output, args.candidates.split(","))
     elif args.run is None:
         raise SystemExit(f"{args.command} needs an edit run (a folder holding config.yml)")

@@ -284,6 +284,45 @@ def test_sketch_view_fill_credits_a_correct_edit_that_kept_content_hides():
     assert whole["ios_region_perfect"] > 0.95 and whole["ios_visible"] == 0.0
 
 
+def test_the_harness_names_each_call_of_a_step_and_restarts_per_step():
+    """A step's n-th render is its n-th part (the last name after that), counted afresh after each reset; the
+    wrapped method still returns its own result, and unwrapping restores it."""
+    import contextlib
+
+    import harness
+
+    class Model:
+        def render(self, value):
+            return value * 2
+
+    seen = []
+
+    @contextlib.contextmanager
+    def context(name):
+        seen.append(name)
+        yield
+
+    model = Model()
+    reset = harness.marked(model, "render", ["random_view", "sketch_view"], context)
+    assert [model.render(v) for v in (1, 2, 3)] == [2, 4, 6]
+    reset()
+    model.render(4)
+    assert seen == ["random_view", "sketch_view", "sketch_view", "random_view"]
+    undo = harness.wrap(model, "render", contextlib.nullcontext)
+    undo()
+    assert model.render(5) == 10 and "render" in vars(model)  # the marked one again
+
+
+def test_the_harness_times_only_the_calls_after_the_warm_up():
+    import harness
+
+    calls = []
+    times = harness.timed_calls(lambda: calls.append(1), repeats=3, device="cpu", warmup=2)
+    assert len(calls) == 5 and len(times) == 3 and all(t >= 0 for t in times)
+    environment = harness.environment("cpu")
+    assert {"python", "torch", "device", "machine", "torch_threads", "commit"} <= set(environment)
+
+
 def test_the_memory_meter_counts_exactly_what_torch_allocates():
     from memory_meter import live_tensor_bytes, metered, part
 
