@@ -6,6 +6,7 @@ import contextlib
 import os
 import tempfile
 from pathlib import Path
+from typing import Callable
 
 
 def publish_atomically(written: Path, path: Path) -> None:
@@ -21,16 +22,22 @@ def publish_atomically(written: Path, path: Path) -> None:
             os.close(folder)
 
 
-def write_text_atomically(path: Path, text: str) -> None:
-    """`path.write_text(text)`, except that a kill mid-write leaves the previous file (results a rerun continues from)."""
+def write_atomically(path: Path, write: Callable[[str], None]) -> None:
+    """`write(partial)` to a file beside `path`, then published as `path`: a kill mid-write leaves the previous file
+    (or none), never half of the new one."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     handle, written = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".partial", dir=path.parent)  # same file system
+    os.close(handle)
     try:
-        with os.fdopen(handle, "w") as file:
-            file.write(text)
+        write(written)
         publish_atomically(Path(written), path)
     except BaseException:
         with contextlib.suppress(OSError):
             os.unlink(written)
         raise
+
+
+def write_text_atomically(path: Path, text: str) -> None:
+    """`path.write_text(text)`, except that a kill mid-write leaves the previous file (results a rerun continues from)."""
+    write_atomically(path, lambda written: Path(written).write_text(text))

@@ -33,6 +33,7 @@ def check_edit_inputs(config) -> None:
     """The devices, the guidance (prompt and weights), the sketch set and the data with it, as the edit reads them."""
     model = config.pipeline.model
     check_devices(config.machine)
+    warn_idle_mixed_precision(config)
     check_optimizers(config.optimizers)  # the edit's own (a splat edit's set at its start)
     check_guidance(model.guidance, model.prompt)
     if not is_carving(model):
@@ -79,6 +80,7 @@ def check_disk_space(config) -> None:
     first save cannot fit (a save writes the new checkpoint beside the last), warned when all that are kept cannot."""
     import shutil
 
+    from sked_ns.engine.kept_base import KEPT
     from sked_ns.method.frozen_base import base_weights
 
     model = config.pipeline.model
@@ -90,7 +92,7 @@ def check_disk_space(config) -> None:
         return
     size = CHECKPOINT_MARGIN * max(sizes)
     folder = config.get_checkpoint_dir()
-    own = model.base_kept is not None and Path(model.base_kept).parent == folder.parent.absolute() / "base"
+    own = model.base_kept is not None and Path(model.base_kept).parent == folder.parent.absolute() / KEPT
     copy = 0 if own or not base else base  # a new run folder gets its own copy of the base (at most this size)
     free = shutil.disk_usage(_existing_ancestor(folder)).free
     gb = 2**30
@@ -104,6 +106,17 @@ def check_disk_space(config) -> None:
     if not config.save_only_latest_checkpoint and free < saves * size:
         warn(f"--save-only-latest-checkpoint False: the edit's {saves} checkpoints need about {saves * size / gb:.1f} "
              f"GB, and {folder} has {free / gb:.1f} GB free; the later saves will fail.")
+
+
+def warn_idle_mixed_precision(config, argv=None) -> None:
+    """--mixed-precision True typed for a CPU edit: nerfstudio trains in fp32 there without a word (the presets'
+    own True is for the GPU and is not warned)."""
+    from sked_ns.engine.resume import command_line_paths
+
+    if config.mixed_precision and config.machine.device_type == "cpu" and \
+            "mixed_precision" in command_line_paths(config, argv):
+        warn("--mixed-precision True: has no effect on the CPU, where nerfstudio trains in fp32 (it halves the "
+             "guidance's memory and time on a GPU only).")
 
 
 def check_devices(machine) -> None:

@@ -16,16 +16,13 @@ that copy. The files are written once, by the edit that starts.
 
 from __future__ import annotations
 
-import contextlib
-import os
 import shutil
-import tempfile
 from pathlib import Path
 from typing import Optional
 
 import torch
 
-from sked_ns.atomic import publish_atomically
+from sked_ns.atomic import write_atomically
 from sked_ns.errors import SkedUserError
 
 KEPT = "base"
@@ -64,28 +61,15 @@ def keep_base(model, run_dir: Path) -> None:
         folder.mkdir(parents=True, exist_ok=True)
         for target, source in sources.items():
             if source.exists():
-                _copy_atomically(folder / target, lambda path, source=source: shutil.copyfile(source, path))
+                write_atomically(folder / target, lambda path, source=source: shutil.copyfile(source, path))
         state = torch.load(checkpoint, map_location="cpu")
         weights = {"step": state.get("step", 0), "pipeline": state["pipeline"]}
-        _copy_atomically(folder / checkpoint.name, lambda path: torch.save(weights, path))
+        write_atomically(folder / checkpoint.name, lambda path: torch.save(weights, path))
     except OSError as error:
         raise SkedUserError(f"{folder}: cannot keep the edit's copy of its base checkpoint {checkpoint} there "
                             f"({error.strerror or error}); the edit reads it whenever it is loaded. Free space "
                             "there, or pass another --output-dir.") from error
     model.base_kept = folder / checkpoint.name
-
-
-def _copy_atomically(path: Path, write) -> None:
-    """`write(partial)`, then the whole file published as `path` (a kill leaves no half copy for a later load)."""
-    handle, partial = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".partial", dir=path.parent)
-    os.close(handle)
-    try:
-        write(partial)
-        publish_atomically(Path(partial), path)
-    except BaseException:
-        with contextlib.suppress(OSError):
-            os.unlink(partial)
-        raise
 
 
 def keep_sketches(model, run_dir: Path) -> None:

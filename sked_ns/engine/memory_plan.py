@@ -365,22 +365,11 @@ def choose_field_chunk(config, free: Optional[float]) -> int:
     return CHECKPOINTED_FIELD_CHUNK
 
 
-def warn_idle_mixed_precision(config, argv=None) -> None:
-    """--mixed-precision True typed for a CPU edit: nerfstudio trains in fp32 there without a word (the presets'
-    own True is for the GPU and is not warned)."""
-    from sked_ns.engine.resume import command_line_paths
-
-    if config.mixed_precision and config.machine.device_type == "cpu" and \
-            "mixed_precision" in command_line_paths(config, argv):
-        warn("--mixed-precision True: has no effect on the CPU, where nerfstudio trains in fp32 (it halves the "
-             "guidance's memory and time on a GPU only).")
-
-
 def check_memory(config) -> MemoryPlan:
     """Choose the field chunk where the config leaves it to the plan; print the plan (and the step's expected time)
     once; refuse, before anything is written, an edit that cannot fit in the CUDA device's free memory (a CPU edit:
-    available memory and swap), naming the options that would; warn a CPU edit that would swap, a step expected to
-    take minutes, and mixed precision typed for the CPU."""
+    available memory and swap), naming the options that would; warn a CPU edit that would swap, and a step expected to
+    take minutes."""
     from sked_ns.method.options import AUTO_FIELD_CHUNK
 
     options = config.pipeline.model
@@ -420,5 +409,4 @@ def check_memory(config) -> MemoryPlan:
     slow = plan.step_time and slow_step_warning(plan.step_time, config.machine.device_type)
     if slow:
         warn(slow)
-    warn_idle_mixed_precision(config)
     return plan

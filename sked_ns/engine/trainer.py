@@ -316,9 +316,10 @@ class SkedTrainer(Trainer):
         says that it runs, and how long it has run, until it ends (it may take minutes: the memory plan's estimate)."""
         self.step_guard.start()
         device_type = "cpu" if self.device.split(":")[0] in ("cpu", "mps") else self.device.split(":")[0]
-        first, self._stepped = not self._stepped, True
-        what = "running the edit's first step" if step == 0 else f"running step {step}, the first since the resume"
-        heartbeat = Heartbeat("ns-train sked", what) if first else contextlib.nullcontext()
+        heartbeat = contextlib.nullcontext()
+        if not self._stepped:
+            what = "running the edit's first step" if step == 0 else f"running step {step}, the first since the resume"
+            heartbeat, self._stepped = Heartbeat("ns-train sked", what), True
         with heartbeat, default_autocast_dtype(device_type, self.autocast_dtype):
             loss, loss_dict, metrics_dict = super().train_iteration(step)
         if self.step_guard.reason == "loss":

@@ -91,19 +91,18 @@ def read_checkpoint(run, flag: str, pinned: bool = False) -> Tuple[Path, dict]:
     from sked_ns.engine.base_scene import resolve_base
 
     checkpoint = run.checkpoint
-    for attempt in range(1, CHECKPOINT_TRIES + 1):
+    for _ in range(CHECKPOINT_TRIES):
         try:
             return checkpoint, torch.load(checkpoint, map_location="cpu")
         except FileNotFoundError as error:
             if pinned:
                 raise SkedFileNotFoundError(f"{flag} {checkpoint}: removed before it could be read (its run saved a "
                                             "newer one?); pass the run folder to load its latest.") from error
-            if attempt == CHECKPOINT_TRIES:
-                raise SkedFileNotFoundError(f"{flag} {run.run_dir}: its latest checkpoint was replaced {attempt} "
-                                            "times while being read (the run is still training and saving that "
-                                            "often); try again, or wait for the run to end.") from error
+            gone = error
         checkpoint = resolve_base(run.run_dir, flag=flag).checkpoint
-    raise AssertionError("unreachable: the last try returns or raises")
+    raise SkedFileNotFoundError(f"{flag} {run.run_dir}: its latest checkpoint was replaced {CHECKPOINT_TRIES} times "
+                                "while being read (the run is still training and saving that often); try again, or "
+                                "wait for the run to end.") from gone
 
 
 def _without_training_loaders(datamanager_config) -> None:

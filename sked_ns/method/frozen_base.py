@@ -7,6 +7,7 @@ of the module tree, so it is never optimised and never saved; the model's `_appl
 from __future__ import annotations
 
 import copy
+import math
 from dataclasses import dataclass, fields, replace
 from pathlib import Path
 from typing import Dict, List, Optional
@@ -94,7 +95,7 @@ def check_weights(state: Dict[str, Tensor], checkpoint: Path) -> None:
         largest = float(value.detach().abs().amax())  # NaN and inf propagate through amax
         if largest <= TRAINED_MAGNITUDE:
             continue
-        if largest != largest or largest == float("inf"):
+        if not math.isfinite(largest):
             kind = "NaN" if bool(torch.isnan(value).any()) else "infinite"
             what = f"holds {kind} values in {name}"
         else:

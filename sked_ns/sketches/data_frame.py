@@ -17,7 +17,7 @@ from typing import Dict, Optional
 import numpy as np
 
 from sked_ns.errors import SkedUserError, warn
-from sked_ns.sketches.placement import check_camera_placement, meeting_point
+from sked_ns.sketches.placement import check_camera_placement, meeting_point, view_label
 from sked_ns.sketches.sketch_set import SKETCHES_JSON, DataparserTransform, SketchSet, load_sketch_set
 
 IMPLIED_COLMAP_TRANSFORM = [[0, 1, 0, 0], [1, 0, 0, 0], [0, 0, -1, 0]]
@@ -138,11 +138,13 @@ def warn_cameras_in_content(sketch_set: SketchSet, training_positions: np.ndarra
     distances, typical = sketch_distances(sketch_set, training_positions)
     near = [index for index, distance in enumerate(distances) if distance * IN_CONTENT < typical]
     if near:
-        names = " and ".join(sketch_set.views[index].name or f"view {index}" for index in near)
-        warn(f"{json_path}: {names}: {'the cameras stand' if len(near) > 1 else 'the camera stands'} "
+        names = " and ".join(view_label(sketch_set.views, index) for index in near)
+        many = len(near) > 1
+        warn(f"{json_path}: {names}: {'the cameras stand' if many else 'the camera stands'} "
              f"{typical / distances[near].max():.0f}x or more nearer the region the sketches mark than the base's "
-             "photos were taken, as if inside the scene's content. If so, move {'them' if len(near) > 1 else 'it'} back out "
-             "to look at the region from outside (as the photos do); a close-up this near is legal, but the edit is then a speck.")
+             f"photos were taken, as if inside the scene's content. If so, move {'them' if many else 'it'} back out "
+             "to look at the region from outside (as the photos do); a close-up this near is legal, but the edit is "
+             "then a speck.")
 
 
 def check_declared_frame(sketch_set: SketchSet, transform: DataparserTransform, training_positions: np.ndarray,
@@ -153,18 +155,18 @@ def check_declared_frame(sketch_set: SketchSet, transform: DataparserTransform, 
     cameras stand as the training cameras do both from the scene centre and from what they sketch: cameras that
     misfit for another reason (inside the scene's content) misfit in either frame, and switching would not help."""
     other = "model" if sketch_set.frame == "data" else "data"
-    declared = frame_misfit(sketch_set.in_model_frame(transform), training_positions, centre)
-    if declared <= FRAME_MISFIT:
-        return warn_cameras_in_content(sketch_set.in_model_frame(transform), training_positions, json_path)
+    as_declared = sketch_set.in_model_frame(transform)
+    declared = frame_misfit(as_declared, training_positions, centre)
     as_other = replace(sketch_set, frame=other).in_model_frame(transform)
     alternative = frame_misfit(as_other, training_positions, centre)
-    if alternative < FRAME_FIT and sketch_distance_misfit(as_other, training_positions) < FRAME_MISFIT:
+    if declared > FRAME_MISFIT and alternative < FRAME_FIT and \
+            sketch_distance_misfit(as_other, training_positions) < FRAME_MISFIT:
         raise SkedUserError(
             f"{json_path}: \"frame\": \"{sketch_set.frame}\", but read so its cameras are up to "
             f"{math.exp(declared):.1f}x nearer or farther from the scene than the base's training cameras; read as "
             f"\"{other}\" they are within {math.exp(alternative):.2f}x. Set \"frame\": \"{other}\" in {json_path.name} "
             "(\"data\": poses copied from the base's transforms.json; \"model\": poses from nerfstudio's viewer).")
-    warn_cameras_in_content(sketch_set.in_model_frame(transform), training_positions, json_path)
+    warn_cameras_in_content(as_declared, training_positions, json_path)
 
 
 def model_frame_sketches(sketches: Optional[Path], metadata: Dict) -> SketchSet:

@@ -300,6 +300,7 @@ def test_durations_are_said_in_their_unit(seconds, said):
 def test_mixed_precision_typed_for_the_cpu_is_warned(device, argv, warned):
     import warnings
 
+    from sked_ns.engine.edit_inputs import warn_idle_mixed_precision
     from sked_ns.engine.presets import edit_preset
 
     config = edit_preset()
@@ -307,5 +308,5 @@ def test_mixed_precision_typed_for_the_cpu_is_warned(device, argv, warned):
     assert config.mixed_precision
     with warnings.catch_warnings(record=True) as seen:
         warnings.simplefilter("always")
-        memory_plan.warn_idle_mixed_precision(config, argv)
+        warn_idle_mixed_precision(config, argv)
     assert any("--mixed-precision True: has no effect on the CPU" in str(w.message) for w in seen) == warned

@@ -67,7 +67,7 @@ def test_cameras_near_inside_the_sketched_part_are_warned_not_sent_to_the_other_
     assert _in_hat(inside)
     save_sketch_set(SketchSet(views=inside), tmp_path / "set")
     with pytest.warns(SkedWarning, match=r"view_00.png and .*view_01.png: the cameras stand \d+x or more nearer the "
-                                         r"region the sketches mark than the base's photos.*inside the scene's content"):
+                                         r"region the sketches mark than the base's photos.*inside the scene's content\. If so, move them back out"):
         _run(tmp_path / "set", "data")
 
 
