@@ -218,7 +218,7 @@ def sd_bytes(guidance, device_type: str) -> Tuple[float, float]:
     if not isinstance(guidance, StableDiffusionGuidanceConfig):
         return 0.0, 0.0
     try:
-        folder = checkpoint_folder(guidance.model, offline=True)
+        folder = checkpoint_folder(guidance.model)
     except SkedUserError:
         return 0.0, 0.0
     if folder is None:

@@ -14,6 +14,7 @@ import torch
 from torch import Tensor
 
 from sked_ns.evaluation.eval_args import DEFAULT_CLIP
+from sked_ns.guidance.hub import download_command
 from sked_ns.sketches.random_views import look_at, orbit_position
 
 # OpenAI CLIP's input normalisation (the constants of every CLIP image processor config).
@@ -40,7 +41,7 @@ class ClipScorer:
         except Exception as error:  # missing files surface as several exception types
             where = source if Path(source).exists() else f"'{source}' in the Hugging Face cache"
             return None, (f"unavailable: no CLIP weights at {where} ({type(error).__name__}). Download them once "
-                          f"(huggingface-cli download {DEFAULT_CLIP}) or pass --clip-model <folder>.")
+                          f"(`{download_command(DEFAULT_CLIP)}`) or pass --clip-model <folder>.")
         return cls(model, tokenizer), None
 
     @torch.no_grad()

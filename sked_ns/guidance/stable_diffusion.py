@@ -2,8 +2,9 @@
 
 Loads any SD 1.x/2.x diffusers checkpoint by hub id or local folder: noise-predicting ones
 (SD 1.x, 2.x base 512) and v-predicting ones (SD 2.x 768), whose output is turned into the
-noise prediction SDS needs. Offline (`HF_HUB_OFFLINE=1`, or `local_files_only`) it reads only
-local files and says how to provide missing weights. Only what the loop uses reaches the
+noise prediction SDS needs. The weights are read only from this machine (a folder, or the hub cache that
+`hf download` fills), online too: an edit checks them before it writes anything and never downloads during a
+run, and missing ones are one line with the command that fetches them. Only what the loop uses reaches the
 device: the UNet and the VAE encoder; the text encoder is freed once the (directional) prompt
 embeddings exist, and the VAE decoder is dropped before the VAE moves (loaded again only when
 an image is decoded). The diffusion model may run on its own device (`device`).
@@ -13,7 +14,6 @@ from __future__ import annotations
 
 import gc
 import json
-import os
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import ClassVar, Dict, List, Literal, Optional, Tuple, Type, get_args
@@ -24,6 +24,7 @@ from torch import Tensor
 
 from sked_ns.errors import SkedFileNotFoundError, SkedUserError, is_number, refuse, warn_option
 from sked_ns.guidance.base import VIEW_DIRECTIONS, Guidance, GuidanceConfig, RenderedView
+from sked_ns.guidance.hub import download_command, hub_cli
 
 SdsWeighting = Literal["authors", "dreamfusion"]
 SDS_WEIGHTINGS = get_args(SdsWeighting)
@@ -79,7 +80,7 @@ class StableDiffusionGuidanceConfig(GuidanceConfig):
     """Hub id (org/name) or local folder of a diffusers Stable Diffusion checkpoint: SD 1.x, 2.x base (512 px)
     or 2.x 768 px (v-prediction; then --pipeline.model.guidance.image-size 768)."""
     local_files_only: bool = False
-    """Never contact the hub (also implied by HF_HUB_OFFLINE=1)."""
+    """Kept for saved configs: the weights are always read from local files (a folder, or the hub cache)."""
     guidance_scale: float = 100.0
     """Classifier-free guidance scale, >= 1 (1 = the text-conditioned prediction alone; DreamFusion uses 100)."""
     t_range: Tuple[float, float] = (0.02, 0.98)
@@ -129,11 +130,10 @@ class StableDiffusionGuidanceConfig(GuidanceConfig):
             warn_option(f"{FLAGS}weight 0: score distillation is off, so nothing but L_sil shapes the sketched region.")
 
     def check_available(self) -> None:
-        """The checkpoint's files are here (a local folder, or the hub cache offline), without loading them; a hub
-        id not cached yet is downloaded when the edit starts, where the hub is reachable."""
-        folder = checkpoint_folder(self.model, _offline(self))
-        if folder is not None:
-            check_checkpoint_folder(folder, self.model)
+        """The checkpoint's files are on this machine (a local folder, or the hub cache), without loading them or
+        contacting the hub, whether or not the hub is reachable: a download at the first step would come after the
+        run folder, the config and the viewer."""
+        check_checkpoint_folder(checkpoint_folder(self.model), self.model)
 
 
 def looks_like_path(source: str) -> bool:
@@ -184,35 +184,28 @@ def view_prompt_tokens(tokenizer, prompt: str, suffixes: Dict[str, str]) -> Dict
     return tokens
 
 
-def _offline(config: StableDiffusionGuidanceConfig) -> bool:
-    return config.local_files_only or os.environ.get("HF_HUB_OFFLINE", "0") not in ("", "0", "false", "False")
-
-
 def how_to_get_weights(source: str) -> str:
-    return ("Provide the weights: download a diffusers Stable Diffusion checkpoint once where the hub is reachable "
-            f"(`huggingface-cli download {source}` fills the cache read offline), or pass a local folder with "
-            f"`pipeline.model.guidance:stable-diffusion {FLAGS}model /path/to/stable-diffusion`. Without weights, "
-            "use `pipeline.model.guidance:reference`.")
+    return (f"Download it once where the hub is reachable: `{download_command(source)}` fills the cache it is read "
+            f"from (or `{download_command(source, '/path/to/sd')}`, then `pipeline.model.guidance:stable-diffusion "
+            f"{FLAGS}model /path/to/sd`). Without weights, use `pipeline.model.guidance:reference`.")
 
 
-def checkpoint_folder(source: str, offline: bool) -> Optional[Path]:
-    """The folder `from_pretrained` would read `source` from: itself, or the hub cache's snapshot of that id; None
-    for a hub id not cached while the hub may be reached (it is downloaded then)."""
+def checkpoint_folder(source: str) -> Path:
+    """The folder `from_pretrained` reads `source` from: itself, or the hub cache's snapshot of that id, found
+    without contacting the hub; a hub id not cached is refused with the command that downloads it."""
     for problem in _model_problems(source):
         raise DiffusionWeightsMissing(problem)
     local = Path(source).expanduser()
     if local.is_dir():
         return local
-    from huggingface_hub import snapshot_download
+    from huggingface_hub import constants, snapshot_download
 
     try:
         return Path(snapshot_download(source, local_files_only=True))
-    except Exception as error:  # not cached, or not a hub id at all (huggingface_hub raises a dozen kinds)
-        if not offline:
-            return None
-        raise DiffusionWeightsMissing(f"{FLAGS}model {source}: not in the hub cache, and the hub is not to be "
-                                      f"contacted (HF_HUB_OFFLINE or {FLAGS}local-files-only; "
-                                      f"{type(error).__name__}). {how_to_get_weights(source)}") from None
+    except Exception:  # not cached, or not a hub id at all (huggingface_hub raises a dozen kinds)
+        raise DiffusionWeightsMissing(f"{FLAGS}model {source}: not on this machine (no such folder, and not in the "
+                                      f"Hugging Face cache {constants.HF_HUB_CACHE}); an edit reads its weights from "
+                                      f"here and never downloads them. {how_to_get_weights(source)}") from None
 
 
 def check_checkpoint_folder(folder: Path, source: str) -> None:
@@ -224,7 +217,7 @@ def check_checkpoint_folder(folder: Path, source: str) -> None:
     if missing:
         raise DiffusionWeightsMissing(
             f"{where}: no {', '.join(missing)}. A diffusers Stable Diffusion checkpoint holds unet/, vae/, "
-            f"text_encoder/, tokenizer/ and scheduler/ (as `save_pretrained` or `huggingface-cli download` write "
+            f"text_encoder/, tokenizer/ and scheduler/ (as `save_pretrained` or `{hub_cli()} download` write "
             f"them). {how_to_get_weights(source)}")
     config_path = folder / "scheduler" / "scheduler_config.json"
     try:
@@ -248,13 +241,14 @@ class StableDiffusionGuidance(Guidance):
             # Checked here: some loaders quietly build a default object from a missing folder.
             raise DiffusionWeightsMissing(
                 f"{local}: no '{subfolder}/' here. A diffusers Stable Diffusion folder holds unet/, vae/, "
-                "text_encoder/, tokenizer/ and scheduler/ (as `save_pretrained` or `huggingface-cli download` "
+                f"text_encoder/, tokenizer/ and scheduler/ (as `save_pretrained` or `{hub_cli()} download` "
                 "write them)."
             )
         try:
             if local.exists():
                 return cls.from_pretrained(str(local), subfolder=subfolder, **kwargs)
-            return cls.from_pretrained(source, subfolder=subfolder, local_files_only=_offline(self.config), **kwargs)
+            # Checked in the cache before the edit wrote anything: read there, with no request to the hub.
+            return cls.from_pretrained(source, subfolder=subfolder, local_files_only=True, **kwargs)
         except (OSError, ValueError) as error:
             where = f"the folder {local}" if local.exists() else f"the hub id '{source}'"
             detail = str(error).strip().splitlines()[0] if str(error).strip() else ""
@@ -266,8 +260,7 @@ class StableDiffusionGuidance(Guidance):
     def weights_available(self) -> bool:
         """Whether every file of the checkpoint can be read here without downloading."""
         try:
-            folder = checkpoint_folder(self.config.model, offline=True)
-            check_checkpoint_folder(folder, self.config.model)
+            check_checkpoint_folder(checkpoint_folder(self.config.model), self.config.model)
             return True
         except SkedUserError:
             return False

@@ -16,6 +16,7 @@ import pytest
 
 from sked_ns import errors
 from sked_ns.errors import SkedFileNotFoundError, SkedUserError
+from sked_ns.guidance.hub import hub_cli
 
 
 def test_ns_train_sked_prints_a_user_error_without_traceback(tmp_path):
@@ -132,7 +133,7 @@ def test_missing_diffusion_weights_are_refused_before_anything_is_written(scene,
     result = _run(*sked_edit(scene, tmp_path / "out", scene["sketches"], "--prompt", "a hat"),
                   env={"HF_HOME": str(tmp_path / "empty-cache"), "HF_HUB_OFFLINE": "1"})
     assert_refused(result, tmp_path / "out", "--pipeline.model.guidance.model CompVis/stable-diffusion-v1-4",
-                   "huggingface-cli download")
+                   f"{hub_cli()} download CompVis/stable-diffusion-v1-4")
 
 
 def _save_config(config) -> None:

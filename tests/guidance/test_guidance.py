@@ -4,8 +4,12 @@ from __future__ import annotations
 
 import gc
 import json
+import re
 import shutil
+import socket
+import sys
 import weakref
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -14,6 +18,7 @@ from tiny_sd import build_tiny_stable_diffusion
 
 from sked_ns.errors import SkedOptionError, SkedOptionWarning
 from sked_ns.guidance import RenderedView, StableDiffusionGuidanceConfig, check_guidance, guidance_config
+from sked_ns.guidance.hub import hub_cli
 from sked_ns.guidance.stable_diffusion import DiffusionWeightsMissing
 
 
@@ -78,12 +83,75 @@ def test_empty_prompt_is_refused(tiny_sd):
         _guidance(tiny_sd).prepare("  ", "cpu", {})
 
 
+def _installed_command(message: str) -> str:
+    """The first backquoted command of a message, checked to be installed beside this Python."""
+    command = re.search(r"`([^`]+)`", message).group(1)
+    assert (Path(sys.executable).parent / command.split()[0]).exists(), f"{command}: not installed here"
+    return command
+
+
 def test_missing_weights_offline_say_how_to_get_them(monkeypatch, tmp_path):
     monkeypatch.setenv("HF_HUB_OFFLINE", "1")
-    monkeypatch.setenv("HF_HOME", str(tmp_path / "empty-cache"))
+    monkeypatch.setattr("huggingface_hub.constants.HF_HUB_CACHE", str(tmp_path / "empty-cache"))
     guidance = StableDiffusionGuidanceConfig(model="CompVis/stable-diffusion-v1-4").setup()
-    with pytest.raises(DiffusionWeightsMissing, match="huggingface-cli download CompVis/stable-diffusion-v1-4"):
+    with pytest.raises(DiffusionWeightsMissing, match="download CompVis/stable-diffusion-v1-4") as error:
         guidance.prepare("a red hat", "cpu", {})
+    assert _installed_command(str(error.value)).endswith("download CompVis/stable-diffusion-v1-4")
+
+
+@pytest.fixture
+def online(monkeypatch):
+    """The hub allowed (HF_HUB_OFFLINE unset), with every network connection failing loudly and recorded."""
+    attempts = []
+
+    def refuse(*args, **kwargs):
+        attempts.append(args)
+        raise AssertionError(f"a test reached for the network: {args}")
+
+    monkeypatch.delenv("HF_HUB_OFFLINE", raising=False)
+    monkeypatch.delenv("TRANSFORMERS_OFFLINE", raising=False)
+    monkeypatch.setattr("huggingface_hub.constants.HF_HUB_OFFLINE", False)
+    monkeypatch.setattr(socket, "getaddrinfo", refuse)
+    monkeypatch.setattr(socket.socket, "connect", refuse)
+    return attempts
+
+
+def test_online_a_hub_id_not_on_the_machine_is_refused_without_a_download(online, monkeypatch, tmp_path):
+    monkeypatch.setattr("huggingface_hub.constants.HF_HUB_CACHE", str(tmp_path / "empty-cache"))
+    config = StableDiffusionGuidanceConfig(model="CompVis/stable-diffusion-v1-4")
+    with pytest.raises(DiffusionWeightsMissing, match=r"^--pipeline.model.guidance.model CompVis/stable-diffusion-v1-4: "
+                                                      r"not on this machine") as error:
+        config.check_available()
+    assert "\n" not in str(error.value)
+    assert _installed_command(str(error.value)) == f"{hub_cli()} download CompVis/stable-diffusion-v1-4"
+    assert not config.setup().weights_available() and not online
+
+
+def test_online_cached_weights_load_without_a_request_to_the_hub(online, tiny_sd, monkeypatch, tmp_path):
+    monkeypatch.setattr("huggingface_hub.constants.HF_HUB_CACHE", str(tmp_path / "hub"))
+    repo, commit = tmp_path / "hub" / "models--someone--tiny-sd", "0123abcd" * 5  # a cache as `hf download` fills it
+    shutil.copytree(tiny_sd, repo / "snapshots" / commit)
+    (repo / "refs").mkdir()
+    (repo / "refs" / "main").write_text(commit)
+    config = StableDiffusionGuidanceConfig(model="someone/tiny-sd", image_size=32)
+    config.check_available()
+    guidance = config.setup()
+    guidance.prepare("a red hat", "cpu", {})
+    assert torch.isfinite(guidance(_view(), step=0)["sds_loss"]) and not online
+
+
+def test_online_missing_weights_are_refused_before_the_edit_writes_anything(online, scene, monkeypatch, tmp_path):
+    from sked_ns.engine.edit_run import edit_config
+
+    monkeypatch.setattr("huggingface_hub.constants.HF_HUB_CACHE", str(tmp_path / "empty-cache"))
+    config = edit_config(scene["base"], scene["data"], scene["sketches"], tmp_path / "out", prompt="a red hat",
+                         guidance="stable-diffusion", iterations=2)
+    config.set_timestamp()
+    with pytest.raises(DiffusionWeightsMissing, match="not on this machine"):
+        config.print_to_terminal()  # nerfstudio's first hook, before the run folder, config.yml and the viewer
+    with pytest.raises(DiffusionWeightsMissing, match="not on this machine"):
+        config.save_config()
+    assert not (tmp_path / "out").exists() and not online
 
 
 def test_the_file_check_passes_a_saved_checkpoint_and_names_what_a_cached_one_lacks(tiny_sd, tmp_path, monkeypatch):
