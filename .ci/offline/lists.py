@@ -11,6 +11,7 @@ torchvision brought (numpy, pillow, sympy, jinja2, ...): they are never listed.
 
 from __future__ import annotations
 
+import argparse
 import importlib
 import importlib.metadata
 import re
@@ -116,10 +117,25 @@ def lock() -> None:
         print(f"{name}.txt: {len(lines)} distributions")
 
 
+def parse_args(argv=None) -> argparse.Namespace:
+    parser = argparse.ArgumentParser(
+        prog="python .ci/offline/lists.py", formatter_class=argparse.RawDescriptionHelpFormatter,
+        description=__doc__.split("\n\n", 1)[0], epilog=__doc__.split("\n\n", 1)[1])
+    commands = parser.add_subparsers(dest="command", required=True, metavar="{imports,lock}")
+    imports = commands.add_parser("imports", help="print the distributions the commands import (minutes: it "
+                                  "imports nerfstudio, diffusers, transformers, ...)")
+    imports.add_argument("kind", nargs="?", choices=("runtime", "export"), default="runtime",
+                         help="runtime: ns-train sked, sked-eval, sked-sketch, sked-batch, ns-render, ns-viewer; "
+                         "export: the same plus ns-export (default runtime)")
+    commands.add_parser("lock", help="rewrite runtime.txt and export.txt, pinned to this environment (runs a tiny "
+                        "edit of each base kind)")
+    return parser.parse_args(argv)
+
+
 if __name__ == "__main__":
-    if sys.argv[1:2] == ["lock"]:
+    arguments = parse_args()
+    if arguments.command == "lock":
         lock()
     else:
-        kind = sys.argv[2] if len(sys.argv) > 2 else "runtime"
-        for distribution in sorted(needed(kind)):
+        for distribution in sorted(needed(arguments.kind)):
             print(distribution)
