@@ -18,6 +18,7 @@ from typing import Optional
 import numpy as np
 import yaml
 
+from sked_ns.engine.run_home import written_in
 from sked_ns.errors import SkedFileNotFoundError, SkedUserError
 from sked_ns.models.registry import family, representation_of
 from sked_ns.sketches.sketch_set import DataparserTransform
@@ -165,6 +166,16 @@ def refuse_unstarted_edit(config_path: Path) -> None:
             return
     except Exception:  # not readable here: the usual messages follow
         return
+    original = written_in(config)  # read from a copy or a move: its checkpoints may be where it came from
+    if original is not None and any((Path(original) / "nerfstudio_models").glob("step-*.ckpt")):
+        raise SkedFileNotFoundError(f"{config_path.parent}: this edit folder has no checkpoints: it was copied or "
+                                    f"moved without its nerfstudio_models/ from {original}. Copy "
+                                    f"{Path(original) / 'nerfstudio_models'} into it to open it.")
+    if original is not None:
+        raise SkedFileNotFoundError(f"{config_path.parent}: this edit folder has no checkpoints: it was copied without "
+                                    f"its nerfstudio_models/ (from {original}, no longer there), or the edit stopped "
+                                    f"before its first checkpoint. Copy them in from where they are, or start the "
+                                    f"edit again with {restart_command(config)}")
     sketches = config.pipeline.model.sketches
     saved = f" (its sketch set is saved in {sketches})" if sketches else ""
     raise SkedFileNotFoundError(f"{config_path.parent}: this edit stopped before its first checkpoint, so there is "

@@ -17,6 +17,7 @@ from typing import Dict, Iterator, Tuple
 
 from nerfstudio.utils.rich_utils import CONSOLE
 
+from sked_ns.engine.run_home import carry_home
 from sked_ns.errors import SkedUserError
 
 RESUME_SETTABLE = (
@@ -132,7 +133,7 @@ def _derived(path: str) -> bool:
     """The learning-rate schedules' length (resolve_edit sets it from --max-num-iterations), and the edit's copy of its
     base (set when a run folder's config.yml is first written; an older edit has none)."""
     return (path.startswith("optimizers.") and path.endswith(".scheduler.max_steps")) or \
-        path == "pipeline.model.base_kept"
+        path in ("pipeline.model.base_kept", "pipeline.model.base_digest")
 
 
 def _show(value) -> str:
@@ -221,6 +222,7 @@ def resumed_config(config, saved, default, run_dir: Path, argv=None) -> None:
             setattr(config, item.name, copy.deepcopy(getattr(saved, item.name)))
     for path in sorted(kept):  # a subcommand's node before its own settings
         set_setting(config, path, kept[path])
+    carry_home(config, saved, typed)
 
 
 def preset_config(method_name: str):

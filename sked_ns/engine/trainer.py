@@ -30,8 +30,9 @@ from sked_ns.atomic import publish_atomically, write_text_atomically
 from sked_ns.engine.base_scene import BaseScene, checkpoint_step, dataparser_command, resolve_base, restart_command
 from sked_ns.engine.drawn_sketches import no_sketches, sketches_pending
 from sked_ns.engine.edit_inputs import check_edit_inputs
-from sked_ns.engine.kept_base import keep_base, keep_sketches
+from sked_ns.engine.kept_base import STORE, keep_base, keep_sketches
 from sked_ns.engine.resume import preset_config, resumed_config, typed_settings
+from sked_ns.engine.run_home import HOME, WRITTEN_IN, config_file_being_read, home_run_folder, rehome
 from sked_ns.engine.safe_step import GuardedGradScaler, GuardedOptimizers, StepGuard
 from sked_ns.errors import SkedFileNotFoundError, SkedUserError, check_writable_folder
 from sked_ns.method.frozen_base import base_implementation
@@ -54,6 +55,16 @@ class SkedTrainerConfig(TrainerConfig):
     """Alias for --pipeline.model.sketches: the sketch-set folder."""
     progressive: bool = False
     """With --load-dir on an earlier SKED run: edit its result again instead of resuming it."""
+
+    def __setstate__(self, state: dict) -> None:
+        """Read from a config.yml: re-rooted at the folder it was read from (engine/run_home.py)."""
+        vars(self).update(state)
+        path = config_file_being_read(str(self.timestamp))
+        if path is not None:
+            rehome(self, path.parent)
+
+    def get_base_dir(self) -> Path:
+        return home_run_folder(self) or super().get_base_dir()
 
     def sketches_to_draw(self) -> None:
         """A new edit without --sketches: refused here; the session layer's config opens them in the viewer."""
@@ -80,11 +91,15 @@ def save_run_config(config: TrainerConfig) -> None:
 
     ns-render, ns-export and ns-viewer (nerfstudio's eval_setup) load `load_step` from the run's own checkpoints,
     and a resume's load_dir / load_step name the interrupted run's: they describe this start, not the run."""
-    path = config.get_base_dir() / "config.yml"
-    keep_base(config.pipeline.model, config.get_base_dir())  # the base run may replace its checkpoint later
-    keep_sketches(config.pipeline.model, config.get_base_dir())  # and the sketch folder may change
+    run_dir = config.get_base_dir()
+    path = run_dir / "config.yml"
+    store = (run_dir.parent if HOME in vars(config) else Path(config.output_dir)) / STORE  # shared by the edits there
+    keep_base(config.pipeline.model, run_dir, store)  # the base run may replace its checkpoint later
+    keep_sketches(config.pipeline.model, run_dir)  # and the sketch folder may change
     run = copy.copy(config)  # the trainer still resumes from the in-memory config
     vars(run).pop(SETTLED, None)
+    for where in (HOME, WRITTEN_IN):  # where this copy of the run is now: found again whenever it is read
+        vars(run).pop(where, None)
     run.load_dir = run.load_step = run.load_checkpoint = None
     CONSOLE.log(f"Saving config to: {path}")
     try:
@@ -190,7 +205,7 @@ def start_edit(config: SkedTrainerConfig, base: BaseScene) -> None:
     """A new edit of `base`: the model shaped like it, starting at step 0 from its weights."""
     model = config.pipeline.model = edit_model_config(config.pipeline.model, base.model_config)
     model.base_checkpoint = base.checkpoint
-    model.base_kept = None  # kept when config.yml is written; a copied config (the next round) names another base
+    model.base_kept = model.base_digest = None  # kept when config.yml is written; a copied config names another base
     if "implementation" in {f.name for f in fields(model)}:  # NeRF fields: the base's layout, not its config, decides
         model.implementation = base_implementation(base.checkpoint)
     optimizers = representation_of(base.model_config).edit_optimizers(config.max_num_iterations, model)

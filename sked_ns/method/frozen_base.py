@@ -45,21 +45,60 @@ class FrozenBase:
 
 def base_weights(options) -> Path:
     """The checkpoint an edit's frozen base is read from: the edit's own copy (`base_kept`, engine/kept_base.py), so
-    that no later write to the base run changes the edit; the base run's before that copy is made."""
+    that no later write to the base run changes the edit, checked against its digest; the base run's before that
+    copy is made."""
     checkpoint = Path(options.base_checkpoint)
-    kept = getattr(options, "base_kept", None)
+    kept, digest = getattr(options, "base_kept", None), getattr(options, "base_digest", None)
     if kept is not None and Path(kept).exists():
+        check_digest(Path(kept), digest, checkpoint)
         return Path(kept)
     if kept is not None:  # its own copy gone: the base run's file may since have been rewritten
         raise SkedFileNotFoundError(
             f"{kept}: the edit's copy of its base checkpoint is missing; the edit is its changes to exactly that "
-            f"base, so loading it needs that file. Put it back (or copy {checkpoint} there if that base run was "
-            "not trained on since the edit started).")
+            f"base, so loading it needs that file. Put it back {replacement(checkpoint, digest)}.")
     if checkpoint.exists():
         return checkpoint
     raise SkedFileNotFoundError(
         f"{checkpoint}: the edit's base checkpoint is missing (its base run saved a newer one and removed it, or was "
         "moved); the edit is its changes to exactly that base, so loading it needs that file. Put it back there.")
+
+
+def replacement(checkpoint: Path, digest: Optional[str]) -> str:
+    """Where a missing or damaged copy of an edit's base can come from again."""
+    if digest is None:
+        return (f"from the folder this edit was copied from, or copy {checkpoint} there if that base run was not "
+                "trained on since the edit started")
+    return (f"from the folder this edit was copied from, or from .sked-bases/{digest}.ckpt in the output folder "
+            "where the edit was made")
+
+
+_DIGESTS: Dict[tuple, str] = {}
+"""File digests by (path, inode, size, mtime): an edit is loaded more than once by one command."""
+
+
+def file_digest(path: Path) -> str:
+    """SHA-256 of a file's bytes, hex."""
+    import hashlib
+
+    stat = Path(path).stat()
+    key = (str(Path(path).absolute()), stat.st_ino, stat.st_size, stat.st_mtime_ns)
+    if key not in _DIGESTS:
+        digest = hashlib.sha256()
+        with open(path, "rb") as file:
+            for block in iter(lambda: file.read(1 << 22), b""):
+                digest.update(block)
+        _DIGESTS[key] = digest.hexdigest()
+    return _DIGESTS[key]
+
+
+def check_digest(kept: Path, digest: Optional[str], checkpoint: Path) -> None:
+    """The edit's copy of its base holds the bytes it held when the edit started (an edit made before digests has none)."""
+    if digest is None or file_digest(kept) == digest:
+        return
+    size = kept.stat().st_size
+    state = "empty" if size == 0 else f"{size} bytes, changed or cut short since the edit started"
+    raise SkedUserError(f"{kept}: the edit's copy of its base checkpoint is damaged ({state}); the edit is its "
+                        f"changes to exactly that base. Put the file back whole {replacement(checkpoint, digest)}.")
 
 
 def read_model_state(checkpoint: Path) -> Dict[str, Tensor]:
@@ -68,7 +107,11 @@ def read_model_state(checkpoint: Path) -> Dict[str, Tensor]:
         state = torch.load(checkpoint, map_location="cpu")
         pipeline = state["pipeline"]
     except Exception as error:
-        raise SkedUserError(f"{checkpoint}: not a readable nerfstudio checkpoint ({error}).") from error
+        reason = str(error) or type(error).__name__
+        size = checkpoint.stat().st_size if checkpoint.exists() else 0
+        raise SkedUserError(f"{checkpoint}: not a readable nerfstudio checkpoint ({'an empty file' if size == 0 else reason}"
+                            f"); it was cut short or damaged. Copy it again whole from where it came from (for an "
+                            "edit's base/ copy: the folder the edit was copied from).") from error
     prefix = "_model."
     model_state = {}
     for key, value in pipeline.items():

@@ -47,6 +47,8 @@ class SkedOptions:
     base_kept: Optional[Path] = None
     """The edit's own copy of that checkpoint's weights (`<edit run>/base/`), which every load of the edit
     reads (no later write to the base run changes the edit); set when the edit starts."""
+    base_digest: Optional[str] = None
+    """The SHA-256 of that copy, checked whenever the edit loads; set with it."""
     guidance: GuidanceChoice = field(default_factory=StableDiffusionGuidanceConfig)
     """What pulls the sketched region: a subcommand, `pipeline.model.guidance:stable-diffusion` (default) or
     another installed guidance (`pipeline.model.guidance:reference`: renders of a known target scene)."""
@@ -227,7 +229,7 @@ def taken_from_the_base(config_class: type, base_class: type) -> None:
             config_class.__annotations__[option.name] = Annotated[ours[option.name],
                                                                   tyro.conf.arg(help=helps[option.name])]
     # The edit keeps the base's cameras (base_camera_optimizer): none to choose; the base's copy is made at the start.
-    hidden = {"camera_optimizer": hints, "base_kept": ours}
+    hidden = {"camera_optimizer": hints, "base_kept": ours, "base_digest": ours}
     for name, types in hidden.items():
         if name in types:
             config_class.__annotations__[name] = Annotated[types[name], tyro.conf.Suppress]
