@@ -6,23 +6,34 @@ from pathlib import Path
 from typing import Dict
 
 import torch
+import yaml
 from nerfstudio.models.splatfacto import num_sh_bases
 from torch import Tensor
 
-from sked_ns.errors import SkedUserError
+from sked_ns.errors import SkedFileNotFoundError, SkedUserError
+from sked_ns.method.frozen_base import base_weights, read_model_state
 
 GAUSSIAN_PARAMS = ("means", "scales", "quats", "features_dc", "features_rest", "opacities")
 """splatfacto's per-Gaussian parameters, in its checkpoint as `gauss_params.<name>`."""
+KEPT_IN_BASE = "kept_in_base"
+"""A splat edit's saved (N_base,) bool: which of its base's Gaussians it keeps (read from the base, not saved)."""
+BASE_CONFIG = "base_config.yml"
+"""The name an edit's copy of its base gives the base's config.yml (engine/kept_base.py's CONFIG)."""
 SH_C0 = 0.28209479177387814
 """The degree-0 SH basis: an SH coefficient difference times this is a colour difference."""
 
 class GaussianSet(torch.nn.Module):
-    """Per-Gaussian tensors held as buffers: saved with the model and moved by `.to()`, never optimised."""
+    """Per-Gaussian tensors held as buffers: moved by `.to()`, never optimised; saved with the model unless `saved` is
+    False (a set read again from elsewhere whenever the model is built)."""
 
-    def __init__(self, tensors: Dict[str, Tensor]):
+    def __init__(self, tensors: Dict[str, Tensor], saved: bool = True):
         super().__init__()
         for name, value in tensors.items():
-            self.register_buffer(name, value)
+            self.register_buffer(name, value, persistent=saved)
+
+    def save_with_model(self, saved: bool) -> None:
+        for name, value in self.tensors().items():
+            self.register_buffer(name, value, persistent=saved)
 
     def __getitem__(self, name: str) -> Tensor:
         return getattr(self, name)
@@ -37,14 +48,18 @@ class GaussianSet(torch.nn.Module):
 
 def base_gaussians(state: Dict[str, Tensor], checkpoint: Path, sh_degree: int) -> Dict[str, Tensor]:
     """The base scene's Gaussians from a model state: a splatfacto run's `gauss_params`, or an earlier SKED splat
-    edit's kept and editable sets together (progressive editing)."""
+    edit's kept and editable sets together (progressive editing), its kept set read from its own base when the edit
+    saved only what it changed."""
     missing = [name for name in GAUSSIAN_PARAMS if f"gauss_params.{name}" not in state]
     if missing:
         raise SkedUserError(f"{checkpoint}: holds no splatfacto Gaussians (no gauss_params.{missing[0]}). "
                             "Point --load-dir at a splatfacto run.")
     gaussians = {name: state[f"gauss_params.{name}"].float() for name in GAUSSIAN_PARAMS}
-    if "kept.means" in state:  # an earlier edit: its kept Gaussians are part of the scene
+    if "kept.means" in state:  # an edit saved whole (earlier versions): its kept Gaussians are in it
         gaussians = {name: torch.cat([state[f"kept.{name}"].float(), gaussians[name]]) for name in GAUSSIAN_PARAMS}
+    elif KEPT_IN_BASE in state:  # an edit saved as its changes: its kept Gaussians are its base's
+        kept = kept_gaussians(edit_base_scene(checkpoint, sh_degree), state[KEPT_IN_BASE], checkpoint)
+        gaussians = {name: torch.cat([kept[name], gaussians[name]]) for name in GAUSSIAN_PARAMS}
     count = len(gaussians["means"])
     rest = num_sh_bases(sh_degree) - 1
     shapes = {"means": (count, 3), "scales": (count, 3), "quats": (count, 4), "features_dc": (count, 3),
@@ -55,6 +70,36 @@ def base_gaussians(state: Dict[str, Tensor], checkpoint: Path, sh_degree: int) -
         raise SkedUserError(f"{checkpoint}: the base's Gaussians do not fit its config (SH degree {sh_degree}): "
                             f"{', '.join(wrong)}.")
     return gaussians
+
+
+def kept_gaussians(base: Dict[str, Tensor], kept_in_base: Tensor, checkpoint: Path) -> Dict[str, Tensor]:
+    """The base's Gaussians an edit keeps, in the base's order (copies: they are the edit's own tensors)."""
+    count = len(base["means"])
+    if kept_in_base.dtype != torch.bool or tuple(kept_in_base.shape) != (count,):
+        raise SkedUserError(f"{checkpoint}: the edit's kept set ({KEPT_IN_BASE} {tuple(kept_in_base.shape)}) does not "
+                            f"fit its base's {count} Gaussians: its base copy is not the one it was made from. Put "
+                            "that copy back in the edit's base folder.")
+    rows = kept_in_base.to(base["means"].device)
+    return {name: value[rows].clone() for name, value in base.items()}
+
+
+def edit_base_scene(checkpoint: Path, sh_degree: int) -> Dict[str, Tensor]:
+    """The whole scene an edit saved in `checkpoint` was made from: its base's Gaussians (composed in turn, when that
+    base is itself such an edit). The edit's config lies beside its checkpoint: its run's config.yml, or, for the
+    copy a later edit keeps of it, that copy's base config."""
+    checkpoint = Path(checkpoint)
+    configs = [checkpoint.parent / BASE_CONFIG, checkpoint.parent.parent / "config.yml"]
+    found = next((path for path in configs if path.exists()), None)
+    if found is None:
+        raise SkedFileNotFoundError(f"{checkpoint}: an edit saved as its changes to its base, and neither "
+                                    f"{configs[0]} nor {configs[1]} is there to say which base; put the edit's "
+                                    "config.yml back beside it.")
+    try:
+        model = yaml.load(found.read_text(), Loader=yaml.Loader).pipeline.model
+    except Exception as error:  # yaml of nerfstudio configs imports arbitrary modules
+        raise SkedUserError(f"{found}: cannot read this nerfstudio config ({error}).") from error
+    weights = base_weights(model)
+    return base_gaussians(read_model_state(weights), weights, sh_degree)
 
 
 def gaussian_colours(gaussians: Dict[str, Tensor], camera_centre: Tensor, sh_degree: int) -> Tensor:

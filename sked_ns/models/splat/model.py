@@ -4,8 +4,10 @@ A Gaussian is a point with a preservation weight w, taken at its centre from the
 field (paper Eq. 4). The base's Gaussians are split once, at set-up:
 
 - **kept** (w > keep_threshold): buffers, never optimised, never densified, pruned or reset, so they
-  stay bit-identical to the base whatever the edit does (they are saved with the edit, which makes
-  its checkpoint the whole scene: an edit is a base for the next one);
+  stay bit-identical to the base whatever the edit does. They are not saved with the edit: it saves which
+  of the base's Gaussians it keeps (`kept_in_base`), and they are read from its copy of the base whenever
+  it is built, so its checkpoint holds what it changed. An edit is a base for the next one: read as a
+  base, it is composed from its own base and its changes (gaussians.base_gaussians);
 - **editable** (the rest, plus new seeds inside the sketches' visual hull): splatfacto's own
   `gauss_params`, optimised at the edit's Adam rates (edit_rates: splatfacto's are sized for 30,000
   steps) and refined by splatfacto's strategy (gsplat's DefaultStrategy), which never sees the kept
@@ -21,8 +23,6 @@ The frozen base (all the base's Gaussians) is a plain attribute: never optimised
 from __future__ import annotations
 
 import copy
-import math
-import warnings
 from dataclasses import dataclass, field
 from typing import Dict, List, Optional, Tuple, Type
 
@@ -47,13 +47,16 @@ from sked_ns.method.preservation import check_beta
 from sked_ns.models.splat.densify import EditableRefinement
 from sked_ns.models.splat.gaussians import (
     GAUSSIAN_PARAMS,
+    KEPT_IN_BASE,
     GaussianSet,
     base_gaussians,
     gaussian_colours,
+    kept_gaussians,
     splat_preservation_loss,
 )
 from sked_ns.models.splat.photo_anchor import SplatPhotoAnchor
 from sked_ns.models.splat.rasterize import rasterize
+from sked_ns.models.splat.seeds import hull_seeds
 from sked_ns.sketches.cameras import viewmat
 
 NEVER = 1 << 30
@@ -118,22 +121,41 @@ class SkedSplatModel(SkedEdit, SplatfactoModel):
 
         base = self._read_base()
         kept = self.preservation_weight(base["means"])[:, 0] > self.config.keep_threshold
-        seeds = self._seed_gaussians(base)
+        count = 0 if is_carving(self.config) else max(int(self.config.num_seeds), 0)  # carving makes nothing
+        seeds = hull_seeds(count, self.edit_box, self.in_sketch_hull, self.config.seed_opacity,
+                           self.config.seed_size, base["features_rest"].shape[1])
         editable = {name: torch.cat([base[name][~kept], seeds[name]]) for name in GAUSSIAN_PARAMS}
-        self.kept = GaussianSet({name: base[name][kept].clone() for name in GAUSSIAN_PARAMS})
+        self._hold_kept(base, kept)
         self.gauss_params = torch.nn.ParameterDict({name: Parameter(value.clone()) for name, value in editable.items()})
         from_base = torch.cat([torch.ones(int((~kept).sum()), dtype=torch.bool),
                                torch.zeros(len(seeds["means"]), dtype=torch.bool)])
         # L_pres's targets, one per editable Gaussian; follow it through densification (densify.follow_densification).
         self.reference = GaussianSet({**{name: value.clone() for name, value in editable.items()}, "from_base": from_base})
-        # Plain attribute: never optimised or saved. Kept first, as the edit renders them, so that an unchanged edit
-        # renders bit-identically to it (the compositor's sums depend on the order of equal-depth Gaussians' blocks).
-        self.frozen_gaussians: Dict[str, Tensor] = {name: torch.cat([base[name][kept], base[name][~kept]])
-                                                    for name in GAUSSIAN_PARAMS}
         self.refinement = EditableRefinement(self._strategy())
         self._step_infos: List[Dict] = []  # the step's training renders, for the refinement after the backward
         self.photo_anchor = SplatPhotoAnchor(self._render_edit, self.composite_with_background, self._rays_away_from_edit,
                                              self.check_photos_once, lambda: self._photos_checked)
+
+    def _hold_kept(self, base: Dict[str, Tensor], kept: Tensor) -> None:
+        """The base's Gaussians split by `kept` (N_base bools): the kept set (read from the base, not saved) and
+        which rows it is (saved), and the frozen base, kept rows first."""
+        self.kept = GaussianSet(kept_gaussians(base, kept, base_weights(self.config)), saved=False)
+        self.register_buffer(KEPT_IN_BASE, kept.clone())
+        # Plain attribute: never optimised or saved. Kept first, as the edit renders them, so that an unchanged edit
+        # renders bit-identically to it (the compositor's sums depend on the order of equal-depth Gaussians' blocks).
+        self.frozen_gaussians: Dict[str, Tensor] = {name: torch.cat([value[kept], value[~kept]])
+                                                    for name, value in base.items()}
+        self.__dict__.pop("_fixed_weights", None)  # w of other Gaussians
+
+    def _base_in_its_order(self) -> Dict[str, Tensor]:
+        """The frozen base in the order of its checkpoint (it is held kept rows first)."""
+        kept = getattr(self, KEPT_IN_BASE)
+        count = int(kept.sum())
+        base = {}
+        for name, value in self.frozen_gaussians.items():
+            base[name] = torch.empty_like(value)
+            base[name][kept], base[name][~kept] = value[:count], value[count:]
+        return base
 
     @torch.no_grad()
     def base_content_near(self, low: np.ndarray, high: np.ndarray) -> bool:
@@ -162,37 +184,6 @@ class SkedSplatModel(SkedEdit, SplatfactoModel):
             pause_refine_after_reset=self.num_train_data + config.refine_every if reset_every != NEVER else 0,
             absgrad=config.use_absgrad, revised_opacity=False, verbose=False,
         )
-
-    @torch.no_grad()
-    def _seed_gaussians(self, base: Dict[str, Tensor]) -> Dict[str, Tensor]:
-        """Grey, nearly transparent, isotropic Gaussians spread uniformly over the sketches' visual hull (where every
-        view's mask agrees), sized to their spacing. None when carving (nothing new is made)."""
-        count = 0 if is_carving(self.config) else max(int(self.config.num_seeds), 0)
-        low = torch.as_tensor(self.edit_box.min, dtype=torch.float32)
-        high = torch.as_tensor(self.edit_box.max, dtype=torch.float32)
-        generator = torch.Generator().manual_seed(0)  # the same seeds for every load of the edit
-        found, drawn, hits = [], 0, 0
-        while count > 0 and hits < count and drawn < 64 * count:
-            points = low + torch.rand((4 * count, 3), generator=generator) * (high - low)
-            inside = points[self.in_sketch_hull(points)]
-            found.append(inside)
-            drawn, hits = drawn + len(points), hits + len(inside)
-        points = torch.cat(found)[:count] if found else torch.zeros((0, 3))
-        if count > 0 and len(points) == 0:
-            warnings.warn("The sketches' visual hull is empty at the sampled points: no Gaussians are seeded for new "
-                          "content, so the edit can only reshape the base's Gaussians near the sketches.", stacklevel=2)
-        n = len(points)
-        hull_volume = float(torch.prod(high - low)) * hits / max(drawn, 1)
-        spacing = (hull_volume / max(n, 1)) ** (1.0 / 3.0)
-        size = max(spacing * self.config.seed_size, 1e-6)
-        return {
-            "means": points,
-            "scales": torch.full((n, 3), math.log(size)),
-            "quats": torch.tensor([1.0, 0.0, 0.0, 0.0]).repeat(n, 1),
-            "features_dc": torch.zeros((n, 3)),  # grey: SH 0 -> 0.5, and sigmoid(0) = 0.5 without SH
-            "features_rest": torch.zeros((n, base["features_rest"].shape[1], 3)),
-            "opacities": torch.full((n, 1), math.log(self.config.seed_opacity / (1 - self.config.seed_opacity))),
-        }
 
     def _apply(self, fn, *args, **kwargs):
         # `.to()`, `.cuda()`, `.half()` reach the frozen base too.
@@ -352,7 +343,18 @@ class SkedSplatModel(SkedEdit, SplatfactoModel):
 
     def load_state_dict(self, state_dict, strict: bool = True, **kwargs):  # type: ignore[override]
         """A saved edit's Gaussian counts differ from a fresh one's (densification): resize, then load. Parameters
-        are resized in place, so the optimisers (set up before a resumed run loads) keep holding them."""
+        are resized in place, so the optimisers (set up before a resumed run loads) keep holding them. Its kept
+        Gaussians are the base's rows it saved as kept; an edit saved whole (by earlier versions) holds its kept
+        Gaussians itself, which are loaded as saved and saved again with it."""
+        state_dict = dict(state_dict)
+        whole = "kept.means" in state_dict
+        if whole:
+            state_dict.setdefault(KEPT_IN_BASE, getattr(self, KEPT_IN_BASE))
+        elif KEPT_IN_BASE in state_dict:
+            saved = state_dict[KEPT_IN_BASE]
+            if not torch.equal(saved.to(self.kept_in_base.device), self.kept_in_base):  # rounding on another device
+                self._hold_kept(self._base_in_its_order(), saved.to(self.kept_in_base.device))
+        self.kept.save_with_model(whole)
         for name, parameter in self.gauss_params.items():
             key = f"gauss_params.{name}"
             if key in state_dict:
