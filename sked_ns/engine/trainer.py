@@ -253,6 +253,12 @@ def edit_model_config(model, base_model_config):
 
 class SkedTrainer(Trainer):
     config: SkedTrainerConfig
+    skipped_steps: int = 0
+    """Steps of this run whose update was skipped (a non-finite loss or gradient)."""
+    steps_run: int = 0
+    """Steps this run has computed, skipped or not."""
+    skipped_for: tuple = ()
+    """What was non-finite in the skipped steps, each named once."""
 
     def __init__(self, config: SkedTrainerConfig, local_rank: int = 0, world_size: int = 1) -> None:
         super().__init__(config, local_rank=local_rank, world_size=world_size)
@@ -268,7 +274,7 @@ class SkedTrainer(Trainer):
 
     def _setup(self, test_mode: str) -> None:
         resolve_edit(self.config)
-        self.skipped_steps = 0
+        self.skipped_steps, self.steps_run, self.skipped_for = 0, 0, ()
         # fp16 on CUDA; tests set it on the CPU (where nerfstudio turns mixed precision off) to prove fp16 safety.
         self.autocast_dtype = torch.float16 if self.device.startswith("cuda") else torch.bfloat16
         super().setup(test_mode=test_mode)
@@ -337,6 +343,7 @@ class SkedTrainer(Trainer):
             heartbeat, self._stepped = Heartbeat("ns-train sked", what), True
         with heartbeat, default_autocast_dtype(device_type, self.autocast_dtype):
             loss, loss_dict, metrics_dict = super().train_iteration(step)
+        self.steps_run += 1
         if self.step_guard.reason == "loss":
             self._skip(step, [name for name, value in loss_dict.items() if not torch.isfinite(value).all()] or ["loss"])
         elif self.step_guard.skipped:
@@ -349,13 +356,31 @@ class SkedTrainer(Trainer):
     def _skip(self, step: int, names) -> None:
         self.skipped_steps += 1
         self.skipped_in_a_row += 1
+        self.skipped_for = tuple(dict.fromkeys((*self.skipped_for, *names)))
         CONSOLE.print(f"[yellow]step {step}: non-finite {', '.join(names)}; update skipped[/yellow]")
         if self.skipped_in_a_row >= MAX_SKIPPED_IN_A_ROW:
             raise SkedUserError(
                 f"steps {step - self.skipped_in_a_row + 1}-{step}: every update skipped for a non-finite "
-                f"{', '.join(names)}, so the edit learns nothing; stopped. Likely wrong: the base's weights (--load-dir: "
-                "NaN or inf in its checkpoint), a learning rate (--optimizers.<group>.optimizer.lr), or a loss weight "
-                "(--pipeline.model.lambda-*) far from its default.")
+                f"{', '.join(names)}, so the edit learns nothing; stopped. {LIKELY_CAUSES}")
+
+    @property
+    def learned_nothing(self) -> bool:
+        """Every step this run computed was skipped: the weights are those it started from."""
+        return self.steps_run > 0 and self.skipped_steps == self.steps_run
+
+    def _after_train(self) -> None:
+        """A run that skipped every step ends as an error, not "Training Finished" (its edit is what it started
+        from, and no checkpoint says otherwise); one that skipped some says how many, before nerfstudio's panel."""
+        if self.learned_nothing:
+            started = "its base" if self._start_step == 0 else f"as its checkpoint of step {self._start_step - 1}"
+            raise SkedUserError(
+                f"{self.steps_run} of {self.steps_run} steps skipped for a non-finite {', '.join(self.skipped_for)}, "
+                f"so the edit is {started}: nothing saved. {LIKELY_CAUSES}")
+        if self.skipped_steps:
+            CONSOLE.print(f"[yellow]{self.skipped_steps} of {self.steps_run} steps "
+                          f"({self.skipped_steps / self.steps_run:.1%}) skipped for a non-finite "
+                          f"{', '.join(self.skipped_for)}: their updates were not applied[/yellow]")
+        super()._after_train()
 
     @check_main_thread
     def save_checkpoint(self, step: int) -> None:
@@ -364,6 +389,9 @@ class SkedTrainer(Trainer):
         bad = [name for name, p in self.pipeline.model.named_parameters() if not torch.isfinite(p).all()]
         if bad:
             CONSOLE.print(f"[red]step {step}: not saving a checkpoint with non-finite weights ({bad[:3]})[/red]")
+            return
+        if self.learned_nothing:  # it would hold the weights the run started from, as if trained to this step
+            CONSOLE.print(f"[yellow]step {step}: not saving a checkpoint: every step so far was skipped[/yellow]")
             return
         checkpoint_dir = self.checkpoint_dir
         staging = checkpoint_dir.parent / f".{checkpoint_dir.name}.partial"  # same file system: the rename is atomic
@@ -392,6 +420,9 @@ MAX_SKIPPED_IN_A_ROW = 32
 """Updates skipped one after another before an edit stops: an fp16 loss scale backs off from its start
 (safe_step.INITIAL_LOSS_SCALE, 2**10) below 1 within 11 skips, so a longer run is not a scale being found but a
 step that cannot be computed."""
+LIKELY_CAUSES = ("Likely wrong: the base's weights (--load-dir: NaN or inf in its checkpoint), a learning rate "
+                 "(--optimizers.<group>.optimizer.lr), or a loss weight (--pipeline.model.lambda-*, "
+                 "--pipeline.model.guidance.weight) far from its default.")
 INTERRUPTED_STATUS = 130
 """A shell's status for a command stopped by Ctrl-C (128 + SIGINT)."""
 
