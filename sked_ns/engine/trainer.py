@@ -253,12 +253,8 @@ def edit_model_config(model, base_model_config):
 
 class SkedTrainer(Trainer):
     config: SkedTrainerConfig
-    skipped_steps: int = 0
-    """Steps of this run whose update was skipped (a non-finite loss or gradient)."""
-    steps_run: int = 0
-    """Steps this run has computed, skipped or not."""
-    skipped_for: tuple = ()
-    """What was non-finite in the skipped steps, each named once."""
+    skipped_steps = steps_run = 0  # of this run's steps: those skipped (a non-finite loss or gradient), all
+    skipped_for: tuple = ()  # what was non-finite in the skipped steps, each named once
 
     def __init__(self, config: SkedTrainerConfig, local_rank: int = 0, world_size: int = 1) -> None:
         super().__init__(config, local_rank=local_rank, world_size=world_size)
@@ -369,8 +365,8 @@ class SkedTrainer(Trainer):
         return self.steps_run > 0 and self.skipped_steps == self.steps_run
 
     def _after_train(self) -> None:
-        """A run that skipped every step ends as an error, not "Training Finished" (its edit is what it started
-        from, and no checkpoint says otherwise); one that skipped some says how many, before nerfstudio's panel."""
+        """A run that skipped every step ends as an error, not "Training Finished", and saves nothing (its weights are
+        what it started from); one that skipped some says how many, before nerfstudio's panel."""
         if self.learned_nothing:
             started = "its base" if self._start_step == 0 else f"as its checkpoint of step {self._start_step - 1}"
             raise SkedUserError(
