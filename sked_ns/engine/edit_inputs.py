@@ -12,6 +12,7 @@ from __future__ import annotations
 import copy
 import json
 import math
+import os
 from pathlib import Path
 
 import torch
@@ -68,21 +69,61 @@ CHECKPOINT_MARGIN = 1.25
 """An edit's checkpoint against its base's: the same modules and optimiser state, plus what the edit adds."""
 
 
+NAME_SHOWN = 24
+"""Characters of an over-long folder name quoted in its error."""
+
+
+def _exists(path: Path) -> bool:
+    try:
+        return path.exists()
+    except OSError:  # e.g. a name too long for the file system: nothing is there
+        return False
+
+
 def _existing_ancestor(folder: Path) -> Path:
     folder = Path(folder).absolute()
-    while not folder.exists() and folder.parent != folder:
+    while not _exists(folder) and folder.parent != folder:
         folder = folder.parent
     return folder
 
 
+def _file_system_limit(folder: Path, name: str, default: int) -> int:
+    try:
+        return os.pathconf(folder, name)
+    except (OSError, ValueError, AttributeError):  # not reported here (or no pathconf): the usual Linux limits
+        return default
+
+
+def check_name_lengths(config) -> None:
+    """Every folder name of the run's path within what its file system allows: one too long fails every file
+    operation under it (ENAMETOOLONG), so it is refused naming the flag that gave it, before anything is looked for
+    there."""
+    run = Path(config.get_checkpoint_dir()).absolute()
+    existing = _existing_ancestor(run)
+    longest = _file_system_limit(existing, "PC_NAME_MAX", 255)
+    given = [("--output-dir", part) for part in Path(config.output_dir).parts]
+    given += [("--experiment-name", str(config.experiment_name)), ("--timestamp", str(config.timestamp))]
+    for flag, name in given:
+        if len(os.fsencode(name)) > longest:
+            shown = name if len(name) <= NAME_SHOWN else name[:NAME_SHOWN] + "..."
+            raise SkedUserError(f"{flag}: the folder name {shown!r} is {len(os.fsencode(name))} bytes long, and the "
+                                f"file system under {existing} allows {longest} a name. Pass a shorter {flag}.")
+    whole = len(os.fsencode(str(run / f"step-{0:09d}.ckpt")))
+    if whole > _file_system_limit(existing, "PC_PATH_MAX", 4096):
+        raise SkedUserError(f"--output-dir {config.output_dir}: the run's checkpoints would have paths {whole} bytes "
+                            "long, more than this system allows. Pass a shorter --output-dir.")
+
+
 def check_disk_space(config) -> None:
     """The checkpoints must fit where they go, found now and not after the first hour of training: refused when the
-    first save cannot fit (a save writes the new checkpoint beside the last), warned when all that are kept cannot."""
+    first save cannot fit (a save writes the new checkpoint beside the last), warned when all that are kept cannot;
+    and their folder's names must be ones its file system can hold."""
     import shutil
 
     from sked_ns.engine.kept_base import KEPT
     from sked_ns.method.frozen_base import base_weights
 
+    check_name_lengths(config)
     model = config.pipeline.model
     base = base_weights(model).stat().st_size if model.base_checkpoint else 0  # the edit's own copy once it has one
     sizes = [base] if base else []
