@@ -5,18 +5,22 @@ target is the demo scene with its hat (an analytic scene rendered exactly at any
 The reference is "the base plus the known change": the analytic target where it differs
 from the analytic base, the frozen base model's own render everywhere else, so the edit is
 pulled towards the change without being pulled towards the analytic scene elsewhere.
+
+For a scene with no analytic twin (a capture), `--pipeline.model.guidance.primitive` makes the change a
+primitive set into the edit box and depth-tested against the frozen base's own render (composite_target.py):
+a tool for measuring an edit of any base, not a way to edit one.
 """
 
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import Dict, Literal, Optional, Type
+from typing import Dict, Literal, Optional, Tuple, Type
 
 import torch
 from torch import Tensor
 
-from sked_ns.errors import SkedUserError
+from sked_ns.errors import SkedUserError, is_number
 from sked_ns.guidance.base import Guidance, GuidanceConfig, RenderedView
 
 
@@ -25,7 +29,17 @@ class ReferenceGuidanceConfig(GuidanceConfig):
     _target: Type = field(default_factory=lambda: ReferenceGuidance)
     target: str = "hat"
     """Which known edit renders the references: the demo sphere's (demo_scene.SCENES: hat, handle,
-    antenna) or a held-out benchmark scene's (objects.SCENES: vase, crate)."""
+    antenna) or a held-out benchmark scene's (objects.SCENES: vase, crate; capture.SCENES: bust). Not read
+    when `primitive` names one."""
+    primitive: Literal["none", "cone", "ball", "box"] = "none"
+    """A target any base can take, for measuring: the frozen base's own render with this primitive set into the
+    edit box, shown where it is nearer than the base's expected depth. none: `target`'s known scene."""
+    primitive_colour: Tuple[float, float, float] = (0.85, 0.15, 0.15)
+    """The primitive's colour (RGB in [0, 1]), shaded by the demo scenes' fixed light."""
+    primitive_size: float = 0.8
+    """The primitive's extent as a share of the edit box's along each axis (a ball's diameter: of its smallest)."""
+    primitive_centre: Tuple[float, float, float] = (0.5, 0.5, 0.5)
+    """Where the primitive's centre sits in the edit box, as shares of its extent along the model frame's axes."""
     weight: float = 30.0
     """Multiplier of the image MSE. At 1 the silhouette loss outweighs it and fills the sketch
     with a grey haze; at 30 the hat takes the target's shape and colour."""
@@ -35,7 +49,10 @@ class ReferenceGuidanceConfig(GuidanceConfig):
     whatever the render (how sked_ns 0.2 and older sampled it)."""
 
     def check(self) -> None:
-        reference_scene(self.target)  # an unknown target is refused before the edit writes anything
+        if self.primitive == "none":
+            reference_scene(self.target)  # an unknown target is refused before the edit writes anything
+        else:
+            check_primitive(self)
         if not (isinstance(self.weight, (int, float)) and math.isfinite(self.weight) and self.weight >= 0):
             raise SkedUserError(f"--pipeline.model.guidance.weight {self.weight!r}: a loss weight must be a finite "
                                 "number >= 0.")
@@ -48,7 +65,15 @@ class ReferenceGuidance(Guidance):
     def prepare(self, prompt: Optional[str], device: str, context: Dict) -> None:
         # The analytic target lives in the data frame: cameras are mapped back from the model frame.
         self.transform = context["dataparser_transform"]
-        self.scene = reference_scene(self.config.target)
+        config = self.config
+        if config.primitive == "none":
+            self.scene = reference_scene(config.target)
+            return
+        from sked_ns.demo.composite_target import Primitive
+
+        self.model = context["model"]  # the frozen base it renders, and the edit box the primitive stands in
+        self.primitive = Primitive.in_edit_box(config.primitive, config.primitive_colour, config.primitive_centre,
+                                               config.primitive_size, self.model.edit_box)
 
     def target_image(self, view: RenderedView) -> tuple[Tensor, Tensor, Tensor]:
         """Sampled as the view was (samples_per_side^2 samples a pixel, averaged; a point-sampled target beside an
@@ -57,12 +82,18 @@ class ReferenceGuidance(Guidance):
         share of those samples."""
         _, _, height, width = view.image.shape
         factor = max(int(view.samples_per_side), 1) if self.config.sampling == "as-rendered" else 1
-        pose = self.transform.invert(view.camera_to_world)
         # Focal lengths are in pixels, so the frame's scale does not change them.
         size = (view.focal * factor, width * factor, height * factor)
-        target = self.scene.render_target(pose, *size)["rgb"]
-        base = self.scene.render_base(pose, *size)["rgb"]
-        changed = ((target - base).abs().amax(dim=-1, keepdim=True) > 1e-3).float()
+        if self.config.primitive != "none":  # the model frame's view of the frozen base, the primitive set in
+            from sked_ns.demo.composite_target import composite_target
+
+            composite = composite_target(self.model, self.primitive, view.camera_to_world, *size)
+            target, changed = composite["rgb"], composite["changed"][..., None].float()
+        else:
+            pose = self.transform.invert(view.camera_to_world)
+            target = self.scene.render_target(pose, *size)["rgb"]
+            base = self.scene.render_base(pose, *size)["rgb"]
+            changed = ((target - base).abs().amax(dim=-1, keepdim=True) > 1e-3).float()
         fine = torch.cat([target, target * changed, changed], dim=-1).permute(2, 0, 1)[None]
         pooled = (torch.nn.functional.avg_pool2d(fine, factor) if factor > 1 else fine).to(view.image)
         return pooled[:, :3], pooled[:, 3:6], pooled[:, 6:]
@@ -73,6 +104,19 @@ class ReferenceGuidance(Guidance):
             # The target over each pixel's changed samples, the frozen base's render over the rest.
             target = changed_colour + (1 - changed) * view.base_image.to(target)
         return {"reference_loss": self.config.weight * (view.image - target).pow(2).mean()}
+
+
+def check_primitive(config: ReferenceGuidanceConfig) -> None:
+    """Refuse a primitive's colour, size or place that no edit box can hold."""
+    flag = "--pipeline.model.guidance."
+    if not (len(config.primitive_colour) == 3 and all(is_number(c) and 0 <= c <= 1 for c in config.primitive_colour)):
+        raise SkedUserError(f"{flag}primitive-colour {config.primitive_colour!r}: three numbers in [0, 1] (red, green, "
+                            "blue).")
+    if not (is_number(config.primitive_size) and 0 < config.primitive_size <= 1):
+        raise SkedUserError(f"{flag}primitive-size {config.primitive_size!r}: a share of the edit box in (0, 1].")
+    if not (len(config.primitive_centre) == 3 and all(is_number(c) and 0 <= c <= 1 for c in config.primitive_centre)):
+        raise SkedUserError(f"{flag}primitive-centre {config.primitive_centre!r}: three shares of the edit box in "
+                            "[0, 1] (0.5 0.5 0.5: its centre).")
 
 
 def reference_scene(name: str):

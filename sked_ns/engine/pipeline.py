@@ -3,12 +3,14 @@
 The datamanager is set up first and tells the model the data's frame (dataset metadata); the
 model loads the sketch set in that frame; this pipeline then checks the base's frame and gives
 the datamanager the same sketch set. Devices are VanillaPipeline's business (it moves the datamanager,
-an nn.Module in nerfstudio 1.1.5).
+an nn.Module in nerfstudio 1.1.5). An edit records its cameras when it starts training, and one loaded to render
+after its data moved is set up from that record (engine/moved_data.py).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Literal, Optional, Type
 
 from nerfstudio.pipelines.base_pipeline import VanillaPipeline, VanillaPipelineConfig
@@ -16,6 +18,7 @@ from torch.cuda.amp.grad_scaler import GradScaler
 
 from sked_ns.engine.base_scene import check_same_frame, edited_base
 from sked_ns.engine.datamanager import SkedDataManagerConfig
+from sked_ns.engine.moved_data import KEPT_VIEWS, keep_views, views_for_moved_data
 from sked_ns.errors import SkedUserError
 from sked_ns.guidance import check_guidance
 from sked_ns.guide import guide
@@ -47,6 +50,10 @@ class SkedPipeline(VanillaPipeline):
         if config.model.sketches is None:  # before any data is read
             raise SkedUserError("SKED needs a sketch set: pass --sketches <folder with sketches.json>.")
         check_guidance(config.model.guidance, config.model.prompt)  # e.g. --prompt "" would carve: refused first
+        if test_mode != "val":  # loaded to render: its photos are not needed, so its data may have moved
+            views = views_for_moved_data(config)
+            if views is not None:
+                setattr(config.datamanager, KEPT_VIEWS, views)
         # nerfstudio's set-up; the model loads the sketch set in the data's frame (model_frame_sketches).
         super().__init__(config, device, test_mode=test_mode, world_size=world_size, local_rank=local_rank,
                          grad_scaler=grad_scaler)
@@ -67,12 +74,21 @@ class SkedPipeline(VanillaPipeline):
         model = self.model
         if not is_carving(model.config):
             guidance = model.config.guidance.setup()
-            guidance.prepare(model.config.prompt, str(model.device), {"dataparser_transform": self.datamanager.dataparser_transform})
+            guidance.prepare(model.config.prompt, str(model.device),
+                             {"dataparser_transform": self.datamanager.dataparser_transform, "model": model})
             model.guidance = guidance
         self._guidance_ready = True
 
+    def keep_views(self) -> None:
+        """Record the edit's cameras beside its copy of the base, once it trains (it has that copy by then)."""
+        kept = getattr(self.model.config, "base_kept", None)
+        if kept is not None and not getattr(self, "_views_kept", False) and Path(kept).parent.is_dir():
+            keep_views(self.datamanager, Path(kept).parent)
+        self._views_kept = True
+
     def get_train_loss_dict(self, step: int):
         self.prepare_guidance()
+        self.keep_views()
         photos = self.model.photo_anchor_acts()
         images = renders_cameras(self.model)  # splats render whole photos, NeRFs ray batches
         data = self.datamanager.next_sked(step, photo_rays=photos and not images, photo_view=photos and images,

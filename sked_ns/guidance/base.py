@@ -58,7 +58,7 @@ class Guidance:
         self.config = config
 
     def prepare(self, prompt: Optional[str], device: str, context: Dict) -> None:
-        """Load weights, encode the prompt; `context` carries scene facts (dataparser transform)."""
+        """Load weights, encode the prompt; `context` carries scene facts (dataparser transform) and the model."""
 
     def __call__(self, view: RenderedView, step: int) -> Dict[str, Tensor]:
         raise NotImplementedError

@@ -83,3 +83,101 @@ def test_loss_is_zero_at_the_target_composed_with_the_base_render():
     target, _, _ = guidance.target_image(_view(4))
     assert float(guidance(_view(4, target), 0)["reference_loss"]) < 1e-10
     assert np.isfinite(float(guidance(_view(4, torch.ones(1, 3, SIZE, SIZE), base_image), 0)["reference_loss"]))
+
+
+# ---- the composite target: a primitive set into any base's render, depth-tested ----------------------------------
+class _AnalyticBase:
+    """Stands in for a SKED model's frozen base: `render_base` sphere-traces the vase scene's base along the rays."""
+
+    config = type("Config", (), {"eval_num_rays_per_chunk": 1 << 20})()
+    device = torch.device("cpu")
+
+    def __init__(self, edit_box):
+        from sked_ns.demo.scenes.objects import SCENES, union
+
+        self.edit_box = edit_box
+        self.sdf, self.albedo = union(SCENES["vase"].base_parts)
+
+    def _collide(self, rays):
+        return rays
+
+    def render_base(self, rays):
+        from sked_ns.demo.scenes.capture import trace_rays
+        from sked_ns.demo.scenes.objects import SCENES
+
+        traced = trace_rays(SCENES["vase"].base_parts, rays.origins, rays.directions)
+        depth = (traced["points"] - rays.origins).norm(dim=-1, keepdim=True)
+        return {"rgb": traced["rgb"], "accumulation": traced["hit"][..., None].float(), "expected_depth": depth}
+
+
+def _box(low, high):
+    from sked_ns.method.edit_box import EditBox
+
+    return EditBox(min=np.asarray(low, dtype=np.float64), max=np.asarray(high, dtype=np.float64))
+
+
+VASE_VIEW = orbit_pose(0.0, 10.0, CAMERA_RADIUS)  # from -y: the vase (x -0.15, y 0.05) is in front of what is behind it
+
+
+def _composite(primitive_box, kind="ball", size=1.0):
+    from sked_ns.demo.composite_target import Primitive, composite_target, render_base_with_depth
+
+    model = _AnalyticBase(primitive_box)
+    primitive = Primitive.in_edit_box(kind, (0.1, 0.9, 0.1), (0.5, 0.5, 0.5), size, primitive_box)
+    result = composite_target(model, primitive, VASE_VIEW, 1.1 * 64, 64, 64)
+    base = render_base_with_depth(model, VASE_VIEW, 1.1 * 64, 64, 64)
+    silhouette = primitive.cast(base["origins"].double(), base["directions"].double())
+    return result, base, silhouette
+
+
+def test_the_composite_is_the_base_render_outside_the_primitive_silhouette():
+    result, base, silhouette = _composite(_box((0.1, -0.5, 0.3), (0.5, -0.1, 0.7)))  # a ball in the open, in front
+    assert silhouette["hit"].sum() > 20 and torch.equal(result["changed"], silhouette["hit"])  # nothing in front of it
+    outside = ~silhouette["hit"]
+    assert torch.equal(result["rgb"][outside], base["rgb"][outside])
+    assert torch.equal(result["base"], base["rgb"])
+    colour = result["rgb"][result["changed"]]
+    assert (colour[:, 1] > colour[:, 0] + 0.2).all()  # the primitive's green, shaded
+
+
+def test_nearer_base_content_hides_the_primitive():
+    """A ball behind the vase: where the vase stands in front of it, the composite shows the vase."""
+    result, base, silhouette = _composite(_box((-0.1, 0.25, 0.2), (0.2, 0.55, 0.5)))
+    hidden = silhouette["hit"] & (base["accumulation"] >= 0.5) & (base["depth"] < silhouette["distance"].float())
+    assert hidden.sum() > 10 and not result["changed"][hidden].any()
+    assert torch.equal(result["rgb"][hidden], base["rgb"][hidden])
+    assert result["changed"].sum() > 5  # the part beside the vase still shows
+    assert torch.equal(result["changed"], silhouette["hit"] & ~hidden)
+
+
+def test_reference_guidance_takes_the_composite_as_its_target_and_its_changed_share():
+    from sked_ns.demo.composite_target import Primitive, composite_target
+
+    edit_box = _box((0.1, -0.5, 0.3), (0.5, -0.1, 0.7))
+    model = _AnalyticBase(edit_box)
+    guidance = ReferenceGuidanceConfig(primitive="cone", primitive_colour=(0.9, 0.1, 0.8), primitive_size=0.7).setup()
+    guidance.prepare(None, "cpu", {"dataparser_transform": _Identity(), "model": model})
+    view = RenderedView(image=torch.zeros(1, 3, SIZE, SIZE), camera_to_world=VASE_VIEW, focal=1.1 * SIZE,
+                        direction="front")
+    target, changed_colour, changed = guidance.target_image(view)
+    primitive = Primitive.in_edit_box("cone", (0.9, 0.1, 0.8), (0.5, 0.5, 0.5), 0.7, edit_box)
+    expected = composite_target(model, primitive, VASE_VIEW, 1.1 * SIZE, SIZE, SIZE)
+    assert torch.equal(changed[0, 0].bool(), expected["changed"]) and expected["changed"].sum() > 5
+    assert torch.allclose(target[0].permute(1, 2, 0), expected["rgb"])
+    base_image = expected["base"].permute(2, 0, 1)[None]
+    reached = RenderedView(image=target, camera_to_world=VASE_VIEW, focal=1.1 * SIZE, direction="front",
+                           base_image=base_image)
+    assert float(guidance(reached, 0)["reference_loss"]) < 1e-10
+
+
+@pytest.mark.parametrize("setting, flag", [
+    ({"primitive_colour": (1.2, 0.0, 0.0)}, "primitive-colour"),
+    ({"primitive_size": 0.0}, "primitive-size"),
+    ({"primitive_centre": (0.5, 1.5, 0.5)}, "primitive-centre"),
+])
+def test_a_primitive_no_edit_box_holds_is_refused_in_one_line(setting, flag):
+    from sked_ns.errors import SkedUserError
+
+    with pytest.raises(SkedUserError, match=rf"^--pipeline\.model\.guidance\.{flag} [^\n]+$"):
+        ReferenceGuidanceConfig(primitive="ball", target="no such scene", **setting).check()
+    ReferenceGuidanceConfig(primitive="ball", target="no such scene").check()  # the known scenes are not asked
