@@ -1,0 +1,133 @@
+"""The capture-like scene: photos through a lens on a hand-held arc, and an edit of it from base to finished run."""
+
+from __future__ import annotations
+
+import json
+import warnings
+
+import cv2
+import numpy as np
+import pytest
+import torch
+
+from sked_ns.demo.scenes import capture
+from sked_ns.demo.scenes.objects import union
+from sked_ns.demo.scenes.sphere import trace
+from sked_ns.errors import SkedOptionWarning
+from sked_ns.method.edit_box import compute_edit_box
+from sked_ns.sketches.placement import check_camera_placement
+from sked_ns.sketches.sketch_set import DataparserTransform, load_sketch_set
+
+SCENE = capture.SCENES["bust"]
+COUNT, HEIGHT = 12, 48
+
+
+@pytest.fixture(scope="module")
+def capture_data(tmp_path_factory):
+    return capture.write_benchmark("bust", tmp_path_factory.mktemp("capture"), count=COUNT, height=HEIGHT,
+                                   sketch_size=HEIGHT)
+
+
+def _read(path):
+    return torch.from_numpy(cv2.imread(str(path))[..., ::-1].astype(np.float32) / 255)
+
+
+def test_photos_are_portrait_and_taken_through_the_lens_at_their_own_exposure(capture_data):
+    meta = json.loads((capture_data["data"] / "transforms.json").read_text())
+    assert meta["camera_model"] == "OPENCV" and all(meta[k] != 0 for k in ("k1", "k2", "p1", "p2"))
+    assert meta["h"] == HEIGHT and meta["w"] < meta["h"] and len(meta["frames"]) == COUNT
+    taken, _ = capture.capture_poses(COUNT)
+    gains = torch.as_tensor(capture.exposures(COUNT), dtype=torch.float32)
+    for index in (0, COUNT - 1):
+        photo = _read(capture_data["data"] / meta["frames"][index]["file_path"])
+        assert photo.shape == (meta["h"], meta["w"], 3)
+        lens = (SCENE.photo(taken[index], meta)["rgb"] * gains[index]).clamp(0, 1)
+        assert (photo - lens).abs().max() < 1.5 / 255  # the photo is the lens's view at that photo's exposure
+        pinhole = trace(*union(SCENE.base_parts), taken[index], meta["fl_x"], meta["w"], meta["h"])["rgb"]
+        assert (photo - pinhole).abs().mean() > 0.02  # a lens a pinhole does not match
+    spread = gains.mean(dim=1)
+    assert spread.max() - spread.min() > 0.1
+
+
+def test_nerfstudio_reads_the_lens_and_the_poses_are_a_hand_held_arc(capture_data):
+    from nerfstudio.data.dataparsers.nerfstudio_dataparser import NerfstudioDataParserConfig
+
+    outputs = NerfstudioDataParserConfig(data=capture_data["data"]).setup().get_dataparser_outputs("train")
+    assert outputs.cameras.distortion_params is not None and outputs.cameras.distortion_params.abs().sum() > 0
+    taken, recorded = capture.capture_poses(COUNT)
+    positions = np.stack([pose[:, 3] for pose in taken]) - np.asarray(capture.LOOK_AT)
+    azimuths = np.degrees(np.arctan2(positions[:, 0], -positions[:, 1]))
+    assert azimuths.max() - azimuths.min() < 140 and (positions[:, 1] < 0).all()  # an arc in front, not a sphere
+    assert np.std(np.diff(azimuths)) > 0.5  # uneven steps, as a hand holds them
+    rolls = [np.degrees(np.arcsin(pose[2, 0])) for pose in taken]  # the image's x axis leaves the horizontal
+    assert max(abs(r) for r in rolls) > 1.0
+    errors = [np.linalg.norm(a[:, 3] - b[:, 3]) for a, b in zip(taken, recorded)]
+    assert 0 < max(errors) < 0.02
+
+
+@pytest.mark.parametrize("center_method", [
+    "focus",
+    pytest.param("poses", marks=pytest.mark.xfail(strict=True, reason=(
+        "nerfstudio-data centres an arc capture on its cameras: the object lands at the scene box's face and the "
+        "edit box, clipped to the scene box, cuts the far side of the sketched region off without a word"))),
+])
+def test_arc_sketches_are_placed_and_boxed_without_a_warning_in_either_frame(capture_data, center_method):
+    from nerfstudio.data.dataparsers.nerfstudio_dataparser import NerfstudioDataParserConfig
+
+    sketches = load_sketch_set(capture_data["sketches"])
+    assert all(view.mask.shape[0] > view.mask.shape[1] for view in sketches.views)  # portrait, as the photos
+    parser = NerfstudioDataParserConfig(data=capture_data["data"], center_method=center_method).setup()
+    outputs = parser.get_dataparser_outputs("train")
+    transform = DataparserTransform(outputs.dataparser_transform.numpy().astype(np.float64),
+                                    float(outputs.dataparser_scale))
+    points = torch.rand(200_000, 3) * 1.4 - 0.7
+    on_hat = points[SCENE.edit_sdf(points) < -0.005].double()
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        check_camera_placement(sketches.views)
+        assert compute_edit_box(sketches.views).contains(on_hat).all()
+        model_views = sketches.in_model_frame(transform).views
+        check_camera_placement(model_views)
+        box = compute_edit_box(model_views, outputs.scene_box.aabb.numpy())
+    assert len(on_hat) > 100 and box.contains(transform.points_to_model(on_hat)).all()
+
+
+@pytest.fixture(scope="module")
+def capture_edit(capture_data, tmp_path_factory):
+    """A tiny base fitted to the capture's geometry and a two-step edit of it towards the composite target (a cone
+    set into the base's own render), the warnings it gave recorded."""
+    from sked_ns.demo.base import build_demo_base
+    from sked_ns.engine.edit_run import edit_config, run_edit
+
+    root = tmp_path_factory.mktemp("capture-edit")
+    base = build_demo_base(capture_data["data"], root / "runs", steps=60, points_per_step=2048,
+                           sdf=union(SCENE.base_parts)[0])
+    config = edit_config(base, capture_data["data"], capture_data["sketches"], root / "out", iterations=2,
+                         guidance_resolution=16, silhouette_resolution=16, steps_per_save=100)
+    config.pipeline.model.guidance.primitive = "cone"
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        trainer = run_edit(config)
+    return {"base": base, "run": trainer.base_dir, "trainer": trainer, "warnings": caught}
+
+
+def test_an_edit_runs_on_the_capture_from_base_to_checkpoint_with_no_false_warning(capture_edit):
+    run = capture_edit["run"]
+    assert (run / "config.yml").exists() and list((run / "nerfstudio_models").glob("step-*.ckpt"))
+    sked = [str(w.message) for w in capture_edit["warnings"]
+            if issubclass(w.category, SkedOptionWarning) or "sked_ns" in w.filename]
+    # Only the test's own tiny render sizes are warned: nothing about the arc, the lens, the frame or the sketches.
+    unexpected = [m for m in sked if not m.startswith(("--pipeline.model.guidance-resolution",
+                                                       "--pipeline.model.silhouette-resolution"))]
+    assert not unexpected, unexpected
+
+
+def test_the_edit_renders_a_held_out_photo_through_its_lens(capture_edit, capture_data):
+    pipeline = capture_edit["trainer"].pipeline
+    assert pipeline.model.guidance.primitive.kind == "cone"  # the composite target, through the real base
+    cameras = pipeline.datamanager.eval_dataset.cameras
+    assert cameras.distortion_params.abs().sum() > 0
+    with torch.no_grad():
+        outputs = pipeline.model.get_outputs_for_camera(cameras[0:1])
+    assert outputs["rgb"].shape == (HEIGHT, round(HEIGHT * capture.ASPECT), 3)
+    assert torch.isfinite(outputs["rgb"]).all()
