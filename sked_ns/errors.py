@@ -16,8 +16,9 @@ import math
 import os
 import sys
 import warnings
+from dataclasses import dataclass, fields
 from pathlib import Path
-from typing import Iterator, Sequence, Tuple, Type
+from typing import Iterator, List, Mapping, Optional, Sequence, Tuple, Type
 
 TRACEBACK_ENV = "SKED_TRACEBACK"
 
@@ -169,3 +170,35 @@ def refuse(problems: Sequence[str]) -> None:
 def warn_option(message: str) -> None:
     """A legal setting that almost surely defeats the edit: warned at the caller's caller (where it was read)."""
     warnings.warn(message, SkedOptionWarning, stacklevel=3)
+
+
+@dataclass(frozen=True)
+class UsualRange:
+    """Where a legal value is meant: outside [low, high] it is almost surely a typo or a wrong unit, warned with why."""
+
+    low: float
+    high: float
+    below: str
+    above: str
+
+
+def unusual(name: str, value, usual: UsualRange, default: Optional[float] = None) -> Optional[str]:
+    """The warning for VALUE of the flag NAME (as typed) outside USUAL, or None; 0, where legal, means off."""
+    if not is_number(value) or value == 0 or usual.low <= value <= usual.high:
+        return None
+    why = usual.below if value < usual.low else usual.above
+    said_default = f", default {default:g}" if is_number(default) else ""
+    return f"{name} {value:g}: {why} (usual {usual.low:g} to {usual.high:g}{said_default})."
+
+
+def unusual_settings(config, ranges: Mapping[str, UsualRange], prefix: str = MODEL_FLAGS) -> List[str]:
+    """The one check of usual ranges, for SKED's options and each guidance's (`ranges`: field name -> its range):
+    a value outside its field's range is warned, named as typed with its default; one set but not a finite number
+    is refused, as no range holds it."""
+    defaults = {item.name: item.default for item in fields(config)}
+    refuse([f"{flag(name, prefix)} {getattr(config, name)!r}: must be a finite number (usual {usual.low:g} to "
+            f"{usual.high:g})." for name, usual in ranges.items()
+            if getattr(config, name) is not None and not is_number(getattr(config, name))])
+    messages = [unusual(flag(name, prefix), getattr(config, name), usual, defaults.get(name))
+                for name, usual in ranges.items()]
+    return [message for message in messages if message]

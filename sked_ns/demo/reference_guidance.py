@@ -15,18 +15,24 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import Dict, Literal, Optional, Tuple, Type
+from typing import ClassVar, Dict, Literal, Optional, Tuple, Type
 
 import torch
 from torch import Tensor
 
-from sked_ns.errors import SkedUserError, is_number
+from sked_ns.errors import SkedUserError, UsualRange, is_number
 from sked_ns.guidance.base import Guidance, GuidanceConfig, RenderedView
 
 
 @dataclass
 class ReferenceGuidanceConfig(GuidanceConfig):
     _target: Type = field(default_factory=lambda: ReferenceGuidance)
+    usual_ranges: ClassVar[Dict[str, UsualRange]] = {
+        # The image MSE is a mean of order 0.1 or less, summed with SKED's terms of order 1 (method/edit.py).
+        "weight": UsualRange(0.1, 1000.0, "the reference's pull is outweighed by L_sil, which fills the sketch with a "
+                             "grey haze; 0 turns it off", "the reference's pull drowns every other term, L_pres's hold "
+                             "on the rest of the scene included"),
+    }
     target: str = "hat"
     """Which known edit renders the references: the demo sphere's (demo_scene.SCENES: hat, handle,
     antenna) or a held-out benchmark scene's (objects.SCENES: vase, crate; capture.SCENES: bust). Not read
@@ -56,6 +62,7 @@ class ReferenceGuidanceConfig(GuidanceConfig):
         if not (isinstance(self.weight, (int, float)) and math.isfinite(self.weight) and self.weight >= 0):
             raise SkedUserError(f"--pipeline.model.guidance.weight {self.weight!r}: a loss weight must be a finite "
                                 "number >= 0.")
+        super().check()
 
 
 class ReferenceGuidance(Guidance):

@@ -10,6 +10,10 @@ from jaxtyping import Float
 from nerfstudio.configs.base_config import InstantiateConfig
 from torch import Tensor
 
+from sked_ns.errors import UsualRange, unusual_settings, warn_option
+
+FLAGS = "--pipeline.model.guidance."
+"""A guidance's settings as typed after its subcommand."""
 VIEW_DIRECTIONS = ("front", "side", "back", "overhead", "bottom")
 """The directions a prompt is suffixed with (DreamFusion's directional prompts): a rendered view's `direction`."""
 
@@ -39,9 +43,15 @@ class GuidanceConfig(InstantiateConfig):
     _target: Type = field(default_factory=lambda: Guidance)
     uses_prompt: ClassVar[bool] = False
     """Whether the text prompt is what it pulls towards (then no prompt means carving)."""
+    usual_ranges: ClassVar[Dict[str, UsualRange]] = {}
+    """Each numeric setting's usual range by field name: outside it the value is warned as SKED's own knobs are
+    (errors.unusual_settings), and a value that is not a finite number is refused."""
 
     def check(self) -> None:
-        """Refuse settings that cannot work, warn on ones that are almost surely a mistake (before any data is read)."""
+        """Refuse settings that cannot work, warn on ones that are almost surely a mistake (before any data is read).
+        A guidance refuses what only it knows is impossible, then calls this: its `usual_ranges` checked."""
+        for message in unusual_settings(self, self.usual_ranges, FLAGS):
+            warn_option(message)
 
     def check_available(self) -> None:
         """Refuse, before an edit writes anything, when what `prepare` will read (weights) is not there; cheaply,

@@ -22,7 +22,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from sked_ns.errors import SkedFileNotFoundError, SkedUserError, is_number, refuse, warn_option
+from sked_ns.errors import SkedFileNotFoundError, SkedUserError, UsualRange, is_number, refuse, warn_option
 from sked_ns.guidance.base import VIEW_DIRECTIONS, Guidance, GuidanceConfig, RenderedView
 from sked_ns.guidance.hub import download_command, hub_cli
 
@@ -76,6 +76,17 @@ def sds_weight(alphas_cumprod: Tensor, weighting: str) -> Tensor:
 class StableDiffusionGuidanceConfig(GuidanceConfig):
     _target: Type = field(default_factory=lambda: StableDiffusionGuidance)
     uses_prompt: ClassVar[bool] = True
+    usual_ranges: ClassVar[Dict[str, UsualRange]] = {
+        "guidance_scale": UsualRange(1.0, MAX_GUIDANCE_SCALE, "", "the SDS gradient grows with the scale (its loss "
+                                     "with the square), so it swamps every other loss; DreamFusion and SKED use 100"),
+        # The default loss weights are tuned against L_SDS weighted 1.
+        "weight": UsualRange(1e-6, 100.0, "score distillation barely pulls, so nearly nothing but L_sil shapes the "
+                             "sketched region; 0 turns it off", "the SDS gradient drowns L_sil and L_pres, whose "
+                             "default weights are tuned against weight 1"),
+        "image_size": UsualRange(8, 1024, "SD's latent is an eighth of the image's side, so it holds less than one "
+                                 "cell", "larger than SD 1.x and 2.x were trained at (512, 768): each step costs the "
+                                 "square of the size in VAE and UNet work, for detail SD cannot give"),
+    }
     model: str = "CompVis/stable-diffusion-v1-4"
     """Hub id (org/name) or local folder of a diffusers Stable Diffusion checkpoint: SD 1.x, 2.x base (512 px)
     or 2.x 768 px (v-prediction; then --pipeline.model.guidance.image-size 768)."""
@@ -123,9 +134,7 @@ class StableDiffusionGuidanceConfig(GuidanceConfig):
             problems.append(f"{FLAGS}image-size {self.image_size!r}: must be a whole number of pixels > 0 (SD's 512).")
         problems += _model_problems(self.model) + _device_problems(self.device)
         refuse(problems)
-        if scale > MAX_GUIDANCE_SCALE:
-            warn_option(f"{FLAGS}guidance-scale {scale:g}: the SDS gradient grows with the scale (its loss with the square); "
-                 f"above {MAX_GUIDANCE_SCALE:g} it swamps every other loss. DreamFusion and SKED use 100.")
+        super().check()
         if self.weight == 0:
             warn_option(f"{FLAGS}weight 0: score distillation is off, so nothing but L_sil shapes the sketched region.")
 

@@ -3,7 +3,8 @@
 A setting outside its legal range (a negative loss weight, a resolution of 0) would run and silently
 wreck the edit, or fail deep inside with a shape error; one that is legal but almost surely a mistake
 (a guidance render far larger than the paper's 128, a loss weight or learning rate orders of magnitude off:
-USUAL_RANGES) gets a warning. `check_options` runs when `ns-train sked` resolves its config
+USUAL_RANGES) gets a warning. The usual ranges are checked by one function (errors.unusual_settings) for SKED's
+options (OPTION_RANGES) and each guidance's (its config's `usual_ranges`, guidance/base.py). `check_options` runs when `ns-train sked` resolves its config
 (trainer.resolve_edit), `check_optimizers` with the edit's other inputs once its optimisers are known
 (engine/edit_inputs.py), `check_sketch_pixels` once the sketch set is known (model set-up).
 """
@@ -11,11 +12,18 @@ USUAL_RANGES) gets a warning. `check_options` runs when `ns-train sked` resolves
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, fields
-from typing import Dict, List, Optional
+from typing import Dict, List
 
-from sked_ns.errors import DATAMANAGER_FLAGS, flag, is_number, refuse, warn_option
-from sked_ns.method.options import SkedOptions
+from sked_ns.errors import (
+    DATAMANAGER_FLAGS,
+    UsualRange,
+    flag,
+    is_number,
+    refuse,
+    unusual,
+    unusual_settings,
+    warn_option,
+)
 
 LOSS_WEIGHTS = ("lambda_pres", "lambda_colour", "lambda_sil", "lambda_sp", "lambda_new_mass", "lambda_carve",
                 "lambda_photo")
@@ -31,16 +39,6 @@ SMALL_PROPOSAL_GRID = 32
 """Base proposal grids coarser than this (cells a side) are warned: they blur the base's surfaces."""
 MAX_SEEDS = 10_000_000
 """New Gaussians a splat edit may start with: more than most whole scenes hold (each is 708 bytes with Adam's)."""
-
-
-@dataclass(frozen=True)
-class UsualRange:
-    """Where a legal value is meant: outside [low, high] it is almost surely a typo or a wrong unit, warned with why."""
-
-    low: float
-    high: float
-    below: str
-    above: str
 
 
 USUAL_RANGES: Dict[str, UsualRange] = {
@@ -61,20 +59,13 @@ USUAL_RANGES: Dict[str, UsualRange] = {
         0.1, 10.0, "seeds this far apart for their size start as separate dots the guidance sees through",
         "each seed spans many of its neighbours: the hull starts as one blur far larger than itself"),
 }
-"""The usual range of each numeric knob whose extremes are legal: the one table of them."""
-
-
-def unusual(name: str, value, usual: UsualRange, default: Optional[float] = None) -> Optional[str]:
-    """The warning for VALUE of the flag NAME (as typed) outside USUAL, or None; 0, where legal, means off."""
-    if not is_number(value) or value == 0 or usual.low <= value <= usual.high:
-        return None
-    why = usual.below if value < usual.low else usual.above
-    said_default = f", default {default:g}" if default is not None else ""
-    return f"{name} {value:g}: {why} (usual {usual.low:g} to {usual.high:g}{said_default})."
-
-
-def _default(name: str) -> Optional[float]:
-    return next((option.default for option in fields(SkedOptions) if option.name == name), None)
+"""The usual range of each kind of SKED knob whose extremes are legal: the one table of them."""
+OPTION_RANGES: Dict[str, UsualRange] = {
+    **{name: USUAL_RANGES["loss_weight"] for name in LOSS_WEIGHTS},
+    "preservation_delta": USUAL_RANGES["preservation_delta"],
+    "seed_size": USUAL_RANGES["seed_size"],
+}
+"""Each SkedOptions field warned outside its usual range (a guidance declares its own: GuidanceConfig.usual_ranges)."""
 
 
 def _is_whole(value) -> bool:
@@ -202,11 +193,7 @@ def warn_unusual_options(options) -> List[str]:
     if options.splat_supersampling > 4:
         messages.append(f"{flag('splat_supersampling')} {options.splat_supersampling} (splat bases): each training "
                         f"render costs {options.splat_supersampling ** 2}x the pixels for little more than 2-4 give.")
-    for name in LOSS_WEIGHTS:
-        messages.append(unusual(flag(name), getattr(options, name), USUAL_RANGES["loss_weight"], _default(name)))
-    for name in ("preservation_delta", "seed_size"):
-        messages.append(unusual(flag(name), getattr(options, name), USUAL_RANGES[name], _default(name)))
-    messages = [message for message in messages if message]
+    messages = [message for message in messages if message] + unusual_settings(options, OPTION_RANGES)
     for message in messages:
         warn_option(message)
     return messages
