@@ -96,8 +96,11 @@ def test_a_moved_edit_opens_where_it_is_now(scene, finished_edit, tmp_path):
     original, _ = finished_edit
     view = load_sketch_set(scene["sketches"]).views[0]
     before = _render(original, view)
+    run = tmp_path / "outputs" / "edit" / "sked" / original.name
+    shutil.copytree(original, run)
     moved = tmp_path / "moved" / "edit" / "sked" / original.name
-    shutil.copytree(original, moved)
+    moved.parent.mkdir(parents=True)
+    run.rename(moved)
     text = (moved / "config.yml").read_text()
     assert torch.equal(_render(moved, view), before)
     config, _, checkpoint, _ = _eval_setup(Path(os.path.relpath(moved / "config.yml", tmp_path)), cwd=tmp_path)
