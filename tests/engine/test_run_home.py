@@ -159,3 +159,35 @@ def test_rehome_names_the_new_folder_and_leaves_outside_paths(finished_edit, tmp
     assert config.get_base_dir() == tmp_path / "elsewhere"
     assert Path(config.pipeline.model.sketches) == tmp_path / "elsewhere" / "sketches"
     assert config.pipeline.datamanager.data == data
+
+
+@pytest.fixture(scope="module")
+def splat_edit(tmp_path_factory):
+    """A finished edit of a small splatfacto base, in its output folder with the base."""
+    from sked_ns.demo.scenes import sphere as demo_scene
+    from sked_ns.demo.splat_base import SplatFit, fit_demo_splat_base
+    from sked_ns.sketches.sketch_set import save_sketch_set
+
+    root = tmp_path_factory.mktemp("splat-home")
+    demo_scene.write_demo_dataset(root / "data", num_views=8, size=32)
+    save_sketch_set(demo_scene.demo_sketch_set(size=32), root / "sketches")
+    base = fit_demo_splat_base(root / "data", root / "outputs", SplatFit(steps=10, num_gaussians=200))
+    scene = {"data": root / "data", "sketches": root / "sketches"}
+    return _tiny_edit(scene, base, root / "outputs"), root
+
+
+def test_a_copied_splat_edit_opens_and_resumes_with_the_original_gone(splat_edit, tmp_path):
+    original, root = splat_edit
+    view = load_sketch_set(root / "sketches").views[0]
+    before = _render(original, view)
+    copy = tmp_path / ELSEWHERE
+    shutil.copytree(root, tmp_path / "root")  # a private copy of base and edit, to delete
+    shutil.copytree(tmp_path / "root" / original.relative_to(root), copy)
+    shutil.rmtree(tmp_path / "root")
+
+    assert torch.equal(_render(copy, view), before)
+    config, pipeline, checkpoint, _ = _eval_setup(copy / "config.yml", cwd=tmp_path)  # ns-export gaussian-splat's
+    assert Path(checkpoint).parent == copy / "nerfstudio_models"
+    assert pipeline.model.num_points == load_pipeline(copy).model.num_points > 0
+    resumed = run_edit(resume_config(copy, iterations=3)).base_dir
+    assert resumed.parent == copy.parent and torch.isfinite(_render(resumed, view)).all()
