@@ -231,6 +231,7 @@ def test_a_saved_edit_loads_its_refined_gaussians(splat_scene, tmp_path):
     config, pipeline = edit_pipeline(splat_scene, tmp_path, warmup_length=1, refine_every=2, densify_grad_thresh=1e-12)
     train(config, pipeline, steps=3)
     saved = pipeline.model.state_dict()
+    assert "reference.means" in saved and "kept.means" not in saved  # refined: L_pres's targets moved, saved
     _, fresh = edit_pipeline(splat_scene, tmp_path, warmup_length=1, refine_every=2, densify_grad_thresh=1e-12)
     parameter = fresh.model.gauss_params["means"]
     assert len(parameter) != len(saved["gauss_params.means"])
@@ -239,6 +240,8 @@ def test_a_saved_edit_loads_its_refined_gaussians(splat_scene, tmp_path):
     for key, value in fresh.model.state_dict().items():
         if torch.is_tensor(value):
             assert torch.equal(value, saved[key]), key
+    for name, value in pipeline.model.reference.tensors().items():
+        assert torch.equal(fresh.model.reference[name], value), name
 
 
 @pytest.mark.parametrize("beta, supersampling", [(1e-3, 1), (1.0, 4)])

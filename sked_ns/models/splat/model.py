@@ -56,6 +56,7 @@ from sked_ns.models.splat.gaussians import (
 )
 from sked_ns.models.splat.photo_anchor import SplatPhotoAnchor
 from sked_ns.models.splat.rasterize import rasterize
+from sked_ns.models.splat.saved import TARGETS, base_in_its_order, targets_are_the_bases, targets_from_the_base
 from sked_ns.models.splat.seeds import hull_seeds
 from sked_ns.sketches.cameras import viewmat
 
@@ -148,14 +149,7 @@ class SkedSplatModel(SkedEdit, SplatfactoModel):
         self.__dict__.pop("_fixed_weights", None)  # w of other Gaussians
 
     def _base_in_its_order(self) -> Dict[str, Tensor]:
-        """The frozen base in the order of its checkpoint (it is held kept rows first)."""
-        kept = getattr(self, KEPT_IN_BASE)
-        count = int(kept.sum())
-        base = {}
-        for name, value in self.frozen_gaussians.items():
-            base[name] = torch.empty_like(value)
-            base[name][kept], base[name][~kept] = value[:count], value[count:]
-        return base
+        return base_in_its_order(self.frozen_gaussians, getattr(self, KEPT_IN_BASE))
 
     @torch.no_grad()
     def base_content_near(self, low: np.ndarray, high: np.ndarray) -> bool:
@@ -344,16 +338,20 @@ class SkedSplatModel(SkedEdit, SplatfactoModel):
     def load_state_dict(self, state_dict, strict: bool = True, **kwargs):  # type: ignore[override]
         """A saved edit's Gaussian counts differ from a fresh one's (densification): resize, then load. Parameters
         are resized in place, so the optimisers (set up before a resumed run loads) keep holding them. Its kept
-        Gaussians are the base's rows it saved as kept; an edit saved whole (by earlier versions) holds its kept
-        Gaussians itself, which are loaded as saved and saved again with it."""
+        Gaussians are the base's rows it saved as kept, and L_pres's targets the base's values where it saved none
+        (saved.py); an edit saved whole (by earlier versions) holds both itself, loaded as saved and saved again."""
         state_dict = dict(state_dict)
         whole = "kept.means" in state_dict
         if whole:
             state_dict.setdefault(KEPT_IN_BASE, getattr(self, KEPT_IN_BASE))
         elif KEPT_IN_BASE in state_dict:
-            saved = state_dict[KEPT_IN_BASE]
-            if not torch.equal(saved.to(self.kept_in_base.device), self.kept_in_base):  # rounding on another device
-                self._hold_kept(self._base_in_its_order(), saved.to(self.kept_in_base.device))
+            saved = state_dict[KEPT_IN_BASE].to(self.kept_in_base.device)
+            set_up = self.reference.tensors()
+            if not torch.equal(saved, self.kept_in_base):  # w rounded across keep_threshold on another device
+                self._hold_kept(self._base_in_its_order(), saved)
+            if f"{TARGETS}means" not in state_dict and "gauss_params.means" in state_dict:
+                editable = {name: state_dict[f"gauss_params.{name}"] for name in GAUSSIAN_PARAMS}
+                state_dict.update(targets_from_the_base(self._base_in_its_order(), saved, set_up, editable))
         self.kept.save_with_model(whole)
         for name, parameter in self.gauss_params.items():
             key = f"gauss_params.{name}"
@@ -365,6 +363,17 @@ class SkedSplatModel(SkedEdit, SplatfactoModel):
         self.refinement.reset()
         self._step_infos = []
         return torch.nn.Module.load_state_dict(self, state_dict, strict=strict, **kwargs)
+
+    def state_dict(self, *args, destination=None, prefix: str = "", keep_vars: bool = False):
+        """The model's state, without L_pres's targets while they are the base's values (saved.py)."""
+        state = super().state_dict(*args, destination=destination, prefix=prefix, keep_vars=keep_vars)
+        if f"{prefix}kept.means" in state:
+            return state  # an edit saved whole by earlier versions, saved as it was
+        kept, targets = getattr(self, KEPT_IN_BASE), self.reference.tensors()
+        if targets_are_the_bases(targets, len(self.gauss_params["means"]), self._base_in_its_order(), kept):
+            for name in targets:
+                state.pop(f"{prefix}{TARGETS}{name}")
+        return state
 
     # ---- one iteration --------------------------------------------------------------------
     def get_sked_loss_dict(self, data: Dict, step: int) -> Tuple[Dict[str, Tensor], Dict[str, Tensor], Dict[str, Tensor]]:
