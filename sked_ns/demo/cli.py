@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import argparse
+import shlex
+import sys
 from pathlib import Path
 from typing import List, Optional
 
@@ -13,11 +15,17 @@ from sked_ns.errors import ArgumentParser, DefaultsHelpFormatter
 def demo_parser() -> argparse.ArgumentParser:
     parser = ArgumentParser(prog="sked-demo", formatter_class=DefaultsHelpFormatter,
                             description="A real SKED edit of the embedded demo scene (a sphere gets a hat from two "
-                                        "sketches), end to end, on the CPU or a GPU; reports the paper's metrics.")
+                                        "sketches), end to end, on the CPU or a GPU; reports the paper's metrics. "
+                                        "Run again with the same --output, it reuses the fitted base and continues "
+                                        "an interrupted edit.")
     parser.add_argument("--output", type=Path, default=Path("demo_output"), help="folder for everything the demo writes")
     parser.add_argument("--beta", type=float, default=0.025, help="preservation falloff, image widths")
     parser.add_argument("--size", type=int, default=128, help="size of the rendered images, pixels")
-    parser.add_argument("--iterations", type=int, default=100, help="edit iterations")
+    parser.add_argument("--iterations", type=int, default=100, help="edit iterations (a rerun with more continues the "
+                                                                    "edit)")
+    parser.add_argument("--base-steps", type=int, default=None,
+                        help="the base's fitting steps (default: 600 for nerfacto, 200 for splatfacto); a rerun "
+                             "reuses a base fitted with the same")
     parser.add_argument("--prompt", default=None, help="text for Stable Diffusion guidance (needs its weights; "
                                                        "without it the demo uses reference guidance)")
     parser.add_argument("--diffusion-model", default="CompVis/stable-diffusion-v1-4",
@@ -35,12 +43,24 @@ def entrypoint(argv: Optional[List[str]] = None) -> None:
     args = demo_parser().parse_args(argv)
     import torch
 
+    from sked_ns.demo.rerun import DemoInterrupted
     from sked_ns.demo.run import report, run
 
     device = args.device or ("cuda" if torch.cuda.is_available() else "cpu")
-    summary = run(args.output, args.beta, args.size, args.iterations, prompt=args.prompt,
-                  diffusion_model=args.diffusion_model, device=device, base=args.base)
+    try:
+        summary = run(args.output, args.beta, args.size, args.iterations, args.base_steps, prompt=args.prompt,
+                      diffusion_model=args.diffusion_model, device=device, base=args.base)
+    except DemoInterrupted as stop:
+        # Plain print: the command may hold brackets that rich would read as markup.
+        again = shlex.join(["sked-demo", *(sys.argv[1:] if argv is None else argv)])
+        print(f"interrupted: sked-demo stopped by Ctrl-C {stop}. Run the same command ({again}) to pick up "
+              "where it stopped.", file=sys.stderr, flush=True)
+        raise SystemExit(INTERRUPTED_STATUS) from None
     print(report(summary))
+
+
+INTERRUPTED_STATUS = 130
+"""A shell's status for a command stopped by Ctrl-C (128 + SIGINT)."""
 
 
 if __name__ == "__main__":

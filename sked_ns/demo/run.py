@@ -7,10 +7,14 @@
 3. runs `ns-train sked` on it: reference guidance (renders of the sphere with its hat) when
    no Stable Diffusion weights are available, text-prompt guidance when they are;
 4. renders the sketch views before and after, and reports the paper's metrics.
+
+Run again in the same `--output`, it picks up where the last run stopped (rerun.py): the fitted base is reused and
+an interrupted edit continued from its last checkpoint.
 """
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 from pathlib import Path
@@ -22,7 +26,19 @@ import torch
 
 from sked_ns.demo import BASES
 from sked_ns.demo.base import build_demo_base
+from sked_ns.demo.rerun import (
+    DemoInterrupted,
+    base_digest,
+    data_digest,
+    drop_replaced,
+    forget_base,
+    plan_edit,
+    record_base,
+    record_runs,
+    reusable_base,
+)
 from sked_ns.demo.scenes import sphere as demo_scene
+from sked_ns.engine.trainer import SkedTrainer
 from sked_ns.errors import SkedFileExistsError, SkedUserError, check_writable_folder
 from sked_ns.evaluation.metrics import intersection_over_sketch, psnr_outside
 from sked_ns.evaluation.novel_views import eval_split_views, evaluate_novel_views
@@ -78,6 +94,15 @@ def preservation_figure(sketches: SketchSet, transform: DataparserTransform, bet
     }
 
 
+class DemoEditTrainer(SkedTrainer):
+    """The demo's edit, run as ns-train sked runs it; Ctrl-C is the demo's to report (running the demo again
+    continues the edit), not the ns-train line that would resume it by hand."""
+
+    @contextlib.contextmanager
+    def _interruptible(self, training: bool):
+        yield
+
+
 def _write_png(path: Path, image: np.ndarray) -> None:
     cv2.imwrite(str(path), (image.clip(0, 1) * 255).round().astype(np.uint8)[..., ::-1])
 
@@ -99,15 +124,39 @@ def choose_guidance(prompt: Optional[str], model: str) -> str:
 
 def fit_base(kind: str, data: Path, folder: Path, base_steps: Optional[int], splat_fit=None) -> Path:
     """The demo base: a tiny nerfacto fitted to the analytic scene (600 steps unless given), or splatfacto fitted
-    to the photos (`splat_fit`, a SplatFit: its defaults unless given)."""
+    to the photos (`splat_fit`, a SplatFit: its defaults, or `base_steps` long, unless given)."""
     if kind == "splatfacto":
-        from sked_ns.demo.splat_base import SplatFit, fit_demo_splat_base, last_fit
+        from sked_ns.demo.splat_base import fit_demo_splat_base, last_fit
 
-        run_dir = fit_demo_splat_base(data, folder, splat_fit or SplatFit())
+        run_dir = fit_demo_splat_base(data, folder, splat_fit_of(base_steps, splat_fit))
         print(f"splatfacto base: {last_fit['gaussians']} Gaussians, PSNR {last_fit['train_psnr']:.1f} dB on its "
               f"photos, {last_fit['eval_psnr']:.1f} dB on the held-out ones")
         return run_dir
-    return build_demo_base(data, folder, steps=600 if base_steps is None else base_steps)
+    return build_demo_base(data, folder, steps=base_steps_of(kind, base_steps))
+
+
+def base_steps_of(kind: str, base_steps: Optional[int]) -> int:
+    if base_steps is not None:
+        return base_steps
+    if kind == "splatfacto":
+        from sked_ns.demo.splat_base import SplatFit
+
+        return SplatFit().steps
+    return 600
+
+
+def splat_fit_of(base_steps: Optional[int], splat_fit=None):
+    from sked_ns.demo.splat_base import SplatFit
+
+    if splat_fit is not None:
+        return splat_fit
+    return SplatFit() if base_steps is None else SplatFit(steps=base_steps)
+
+
+def base_settings(kind: str, base_steps: Optional[int], splat_fit, data: Path) -> dict:
+    """What the fitted base depends on: a rerun with the same reuses it."""
+    fit = vars(splat_fit_of(base_steps, splat_fit)) if kind == "splatfacto" else {"steps": base_steps_of(kind, base_steps)}
+    return {"base": kind, "fit": fit, "data": data_digest(data)}
 
 
 def check_demo_settings(output: Path, beta: float, size: int, iterations: int, base_steps: Optional[int],
@@ -118,7 +167,7 @@ def check_demo_settings(output: Path, beta: float, size: int, iterations: int, b
     if not (isinstance(beta, (int, float)) and math.isfinite(beta) and beta > 0):
         raise SkedUserError(f"--beta {beta!r}: the preservation falloff, a finite number of image widths > 0 "
                             "(default 0.025).")
-    for flag, value in (("--size", size), ("--iterations", iterations), ("base_steps", base_steps)):
+    for flag, value in (("--size", size), ("--iterations", iterations), ("--base-steps", base_steps)):
         if value is not None and (isinstance(value, bool) or not isinstance(value, int) or value < 1):
             raise SkedUserError(f"{flag} {value!r}: must be a whole number >= 1.")
     if base not in BASES:
@@ -144,34 +193,119 @@ def check_demo_settings(output: Path, beta: float, size: int, iterations: int, b
     check_writable_folder(output, "--output")
 
 
+class Rerun:
+    """What the demo has settled so far, so that Ctrl-C can say what running it again will reuse."""
+
+    def __init__(self, output: Path, base: str, iterations: int):
+        self.output, self.base, self.iterations = output, base, iterations
+        self.phase, self.base_settings, self.edit_settings = "starting", None, None
+
+    def interrupted(self) -> DemoInterrupted:
+        try:
+            again = self._again()
+        except Exception:  # a damaged folder: the next run says what it finds
+            again = []
+        return DemoInterrupted(f"while {self.phase}" + (f"; running it again {', '.join(again)}" if again else ""))
+
+    def _again(self) -> list:
+        again = []
+        if self.base_settings is not None:
+            reused = reusable_base(self.output, self.base, self.base_settings) is not None
+            again.append("reuses the fitted base" if reused else "fits the base again")
+        if self.edit_settings is not None:
+            plan = plan_edit(self.output / "edits", self.edit_settings, self.iterations)
+            again.append("starts the edit again (it had saved no checkpoint)" if plan.run is None else
+                         "takes the finished edit" if plan.done else
+                         f"continues the edit from its checkpoint at step {plan.step}")
+        return again
+
+
 def run(output: Path, beta: float = 0.025, size: int = 128, iterations: int = 100, base_steps: Optional[int] = None,
         prompt: Optional[str] = None, diffusion_model: str = "CompVis/stable-diffusion-v1-4", device: str = "cpu",
         base: str = "nerfacto", splat_fit=None) -> dict:
-    from sked_ns.engine.edit_run import edit_config, run_edit
-    from sked_ns.evaluation.render import load_pipeline, render_at, render_base_at, resized_mask
-
+    """The demo in `output`, picking up what an earlier run there left (rerun.py); Ctrl-C raises DemoInterrupted."""
     check_demo_settings(output, beta, size, iterations, base_steps, prompt, diffusion_model, device, base)
     output = Path(output).resolve()  # absolute paths in config.yml: ns-* commands work from anywhere
     hold(output, "Wait for it to end, or choose another --output.")  # this process's alone until it ends
     (output / MARKER).touch()
+    rerun = Rerun(output, base, iterations)
+    try:
+        return _run(output, rerun, beta, size, iterations, base_steps, prompt, diffusion_model, device, base, splat_fit)
+    except DemoInterrupted:
+        raise
+    except KeyboardInterrupt:
+        raise rerun.interrupted() from None
 
+
+def _settled_base(output: Path, rerun: Rerun, base: str, base_steps: Optional[int], splat_fit) -> Path:
+    """The fitted base: reused when a run here fitted it with the same settings and it is intact, else fitted."""
     data = output / "data"
+    rerun.phase = "writing the demo data"
     demo_scene.write_demo_dataset(data)
-    base_run = fit_base(base, data, output / "base", base_steps, splat_fit)
+    rerun.base_settings = settings = base_settings(base, base_steps, splat_fit, data)
+    run_dir = reusable_base(output, base, settings)
+    if run_dir is not None:
+        print(f"sked-demo: reusing the {base} base fitted here before with these settings ({run_dir})")
+        return run_dir
+    rerun.phase = f"fitting the {base} base"
+    forget_base(output, base)
+    run_dir = fit_base(base, data, output / "base", base_steps, splat_fit)
+    record_base(output, base, settings, run_dir)
+    return run_dir
+
+
+def _settled_edit(output: Path, rerun: Rerun, base_run: Path, iterations: int, prompt, guidance: str,
+                  diffusion_model: str, beta: float, device: str) -> tuple:
+    """The edit's finished run: taken as it is, continued, or run; and how it came to be."""
+    from sked_ns.engine.edit_run import edit_config, resume_config, run_edit
+
+    edits = output / "edits"
+    rerun.edit_settings = settings = {
+        "base": base_digest(output, rerun.base), "beta": beta, "guidance": guidance, "prompt": prompt,
+        "diffusion_model": diffusion_model if guidance == "stable-diffusion" else None}
+    plan = plan_edit(edits, settings, iterations)
+    print(f"sked-demo: {plan.describe(iterations)}")
+    rerun.phase = "editing"
+    if plan.done:
+        drop_replaced(edits, settings, plan.run, plan.chain)
+        return plan.run, "taken as done"
+    if plan.run is not None:
+        config = resume_config(plan.run, edits, iterations=iterations)
+        config.machine.device_type, config.vis = device, "tensorboard"
+    else:
+        config = edit_config(base_run / "nerfstudio_models", output / "data", output / "sketches", edits,
+                             prompt=prompt, guidance=guidance, iterations=iterations, device=device,
+                             steps_per_save=max(1, min(50, iterations // 10)))  # a rerun continues from near the stop
+        config.pipeline.model.beta = beta
+        if guidance == "stable-diffusion":
+            config.pipeline.model.guidance.model = diffusion_model
+    config.set_timestamp()
+    record_runs(edits, settings, [*plan.chain, config.get_base_dir()])  # before it writes: Ctrl-C finds it
+    run_dir = run_edit(config, DemoEditTrainer).base_dir
+    drop_replaced(edits, settings, run_dir, plan.chain)
+    return run_dir, "new" if plan.run is None else f"continued from step {plan.step}"
+
+
+def _run(output: Path, rerun: Rerun, beta, size, iterations, base_steps, prompt, diffusion_model, device, base,
+         splat_fit) -> dict:
+    from sked_ns.evaluation.render import load_pipeline, render_at, render_base_at, resized_mask
+
+    print(f"sked-demo: the demo data, a {base} base ({base_steps_of(base, base_steps)} fitting steps), two sketches, "
+          f"the edit ({iterations} iterations), then renders and metrics; each phase prints its progress and time "
+          "left. Stopped, the same command picks up where it stopped: the fitted base and the edit's last "
+          "checkpoint are kept.")
+    base_run = _settled_base(output, rerun, base, base_steps, splat_fit)
+    rerun.phase = "writing the sketches"
     save_sketch_set(demo_scene.demo_sketch_set(), output / "sketches", overwrite=True)
     sketches = load_sketch_set(output / "sketches")  # the user's path: from disk
     transform = DataparserTransform.from_json(base_run / "dataparser_transforms.json")
     summary = {"beta": beta, **preservation_figure(sketches, transform, beta, size, output / "preservation_weights.png")}
 
     guidance = choose_guidance(prompt, diffusion_model)
-    config = edit_config(base_run / "nerfstudio_models", data, output / "sketches", output / "edits",
-                         prompt=prompt, guidance=guidance, iterations=iterations, device=device)
-    config.pipeline.model.beta = beta
-    if guidance == "stable-diffusion":
-        config.pipeline.model.guidance.model = diffusion_model
-    trainer = run_edit(config)
-
-    edit_model = trainer.pipeline.model
+    edit_run, how = _settled_edit(output, rerun, base_run, iterations, prompt, guidance, diffusion_model, beta, device)
+    rerun.phase = "rendering the results"
+    edit_pipeline = load_pipeline(edit_run, device)
+    edit_model = edit_pipeline.model
     if base == "splatfacto":
         # nerfstudio's splatfacto renders with gsplat's CUDA kernels only: the edit's frozen copy of the base
         # (exactly its Gaussians) renders it here.
@@ -191,11 +325,11 @@ def run(output: Path, beta: float = 0.025, size: int = 128, iterations: int = 10
         rows.append(np.concatenate([before["rgb"].numpy(), after["rgb"].numpy(), sketched], axis=1))
     _write_png(output / "before_after.png", np.concatenate(rows, axis=0))
     # The edit from the base dataset's evaluation cameras, not only from the sketch views.
-    novel = evaluate_novel_views(edit_model, eval_split_views(trainer.pipeline, size, (1.0, 1.0, 1.0)))
+    novel = evaluate_novel_views(edit_model, eval_split_views(edit_pipeline, size, (1.0, 1.0, 1.0)))
     _write_png(output / "novel_views.png", np.concatenate([row.numpy() for row in novel.pop("rows")], axis=0))
     summary["novel_views"] = novel
     summary.update(
-        base=base, guidance=guidance, iterations=iterations, edit_run=str(trainer.base_dir), views=views,
+        base=base, guidance=guidance, iterations=iterations, edit_run=str(edit_run), edit=how, views=views,
         ios_mean=float(np.mean([v["ios_edit"] for v in views])),
         psnr_outside_mean=float(np.mean([v["psnr_outside"] for v in views])),
         images=[str(output / "preservation_weights.png"), str(output / "before_after.png"),

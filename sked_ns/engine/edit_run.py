@@ -58,8 +58,9 @@ def resume_config(run: Path, output_dir: Optional[Path] = None, *, iterations: O
     return config
 
 
-def run_edit(config: SkedTrainerConfig):
-    """What `ns-train` does with a config: seed, save it, set up the trainer, train. Returns the trainer."""
+def run_edit(config: SkedTrainerConfig, trainer_class=None):
+    """What `ns-train` does with a config: seed, save it, set up the trainer, train. Returns the trainer.
+    `trainer_class`: a subclass of the config's trainer to run it with (config.yml still names the config's own)."""
     import random
 
     import numpy as np
@@ -72,7 +73,7 @@ def run_edit(config: SkedTrainerConfig):
     config.set_timestamp()
     try:
         config.save_config()  # takes the run folder for this edit (ns-train holds it until the process ends)
-        trainer = config.setup(local_rank=0, world_size=1)
+        trainer = (trainer_class or config._target)(config, local_rank=0, world_size=1)
         trainer.setup()
         trainer.train()
     finally:
