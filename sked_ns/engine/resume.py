@@ -36,6 +36,7 @@ SETTINGS_SINCE = {
     "pipeline.datamanager.edit_fill": (0.0, "0.2"),
     "pipeline.model.guidance.sampling": ("pixel-centre", "0.2"),
     "pipeline.model.base_proposal_grid": (0, "0.6"),
+    "pipeline.model.nerf_edit_field": ("full-copy", "0.7"),
 }
 """Settings added after edits were saved, each with the value that continues such an edit as it ran and the last
 sked_ns version without it: a config.yml without the setting would otherwise read the new default."""

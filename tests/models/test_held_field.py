@@ -63,7 +63,8 @@ def test_nothing_held_when_kept_is_none():
 
 
 def _moved_model(scene, tmp_path, keep_threshold: float):
-    """An edit model whose editable field (and proposals) all moved, as hash-grid collisions move them."""
+    """An edit model whose editable field (its local residual, or its copy of the field and proposals) all moved, as
+    hash-grid collisions move them."""
     config = edit_config(scene["base"], scene["data"], scene["sketches"], tmp_path, iterations=5)
     config.pipeline.model.keep_threshold = keep_threshold
     resolve_edit(config)
@@ -71,7 +72,8 @@ def _moved_model(scene, tmp_path, keep_threshold: float):
     model.update_to_step(10**6)  # past the edit-box warm-up
     generator = torch.Generator().manual_seed(0)
     with torch.no_grad():
-        for module in (model.field, getattr(model, "proposal_networks", torch.nn.Identity())):
+        for module in (model.field, getattr(model, "proposal_networks", torch.nn.Identity()),
+                       model.local_field or torch.nn.Identity()):
             for parameter in module.parameters():
                 parameter.add_(0.05 * torch.randn(parameter.shape, generator=generator))
     return model.eval()
@@ -109,7 +111,7 @@ def test_kept_samples_carry_the_base_outputs_and_only_the_others_a_gradient(scen
     for key in (FieldHeadNames.DENSITY, FieldHeadNames.RGB):
         assert torch.equal(field_outputs[key][kept], base_outputs[key][kept].to(field_outputs[key].dtype)), key
         assert not torch.equal(field_outputs[key][~kept], base_outputs[key][~kept]), key
-    parameters = [p for p in model.field.parameters() if p.requires_grad]
+    parameters = [p for p in model.parameters() if p.requires_grad]  # the local residual's, or the field's
     loss = lambda mask: (field_outputs[FieldHeadNames.DENSITY][mask].sum()  # noqa: E731
                          + field_outputs[FieldHeadNames.RGB][mask].sum())
     kept_gradients = torch.autograd.grad(loss(kept), parameters, retain_graph=True, allow_unused=True)

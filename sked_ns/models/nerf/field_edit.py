@@ -41,6 +41,8 @@ from sked_ns.models.nerf.chunked import chunked
 from sked_ns.models.nerf.colour_residual import ColourResidual
 from sked_ns.models.nerf.hash_grid import use_fast_hash_grids
 from sked_ns.models.nerf.held_field import held_field_outputs
+from sked_ns.models.nerf.local_edit import LocalEdit
+from sked_ns.models.nerf.local_field import LOCAL
 
 NERF_EDIT_OWNED = SkedOptions.EDIT_OWNED | {
     # the edit's own losses
@@ -49,6 +51,7 @@ NERF_EDIT_OWNED = SkedOptions.EDIT_OWNED | {
     "proposal_update_every", "proposal_warmup", "use_proposal_weight_anneal", "proposal_weights_anneal_slope",
     "proposal_weights_anneal_max_num_iters",
     "edit_box_density", "grid_update_interval",  # SKED's sampling of the edit box
+    "nerf_edit_field",  # the edit's representation
 }
 """The model-config fields a NeRF edit decides, not its base (nerfacto and instant-ngp alike)."""
 
@@ -62,7 +65,7 @@ def per_ray_sum(values: Tensor, accumulation: Tensor, ray_indices: Optional[Tens
 
 
 
-class SkedMixin(SkedEdit):
+class SkedMixin(LocalEdit, SkedEdit):
     """SKED on a radiance field rendered along rays: L_pres on field samples, the base's field, photo rays."""
 
     BASE_PREFIXES: Tuple[str, ...] = ("field.",)
@@ -75,8 +78,10 @@ class SkedMixin(SkedEdit):
         # The appearance of random views is the average embedding: keep it as trained.
         if getattr(self.field, "embedding_appearance", None) is not None:
             self.field.embedding_appearance.requires_grad_(False)
+        # The local edit (local_field.py) owns its colour; the full copy gets the colour residual.
+        self.local_field = self._local_residual() if self.config.nerf_edit_field == LOCAL else None
         self.colour_residual = (ColourResidual(self.edit_box.min, self.edit_box.max)
-                                if self.config.colour_residual else None)
+                                if self.config.colour_residual and self.local_field is None else None)
         self.sketch_ray_opacity = SketchRayOpacity(self.sketch_set.views, self.config.silhouette_resolution)
 
     def _steer(self, ray_bundle: RayBundle, outputs: Dict[str, Tensor]) -> Dict[str, Tensor]:
@@ -89,7 +94,7 @@ class SkedMixin(SkedEdit):
             raise ValueError("No base checkpoint: run `ns-train sked --load-dir <base run or its nerfstudio_models>`.")
         checkpoint = base_weights(self.config)
         state = read_model_state(checkpoint)
-        ours = self.state_dict()
+        ours = torch.nn.Module.state_dict(self)  # the whole model, the base's modules too
         if uses_tcnn(state) != uses_tcnn(ours):
             trained, here = ("tiny-cuda-nn", "torch") if uses_tcnn(state) else ("torch", "tiny-cuda-nn")
             raise SkedUserError(
@@ -107,7 +112,7 @@ class SkedMixin(SkedEdit):
                 f"{checkpoint}: the base's weights do not fit this model (missing {missing[:3]}, "
                 f"shape mismatch {mismatched[:3]}). Is --data the base's data, and the base a supported method?"
             )
-        self.load_state_dict({key: state[key] for key in wanted}, strict=False)
+        torch.nn.Module.load_state_dict(self, {key: state[key] for key in wanted}, strict=False)  # the base, as it is
         self._base_cameras = self._frozen_base_cameras(state)
 
     def _frozen_base_cameras(self, state: Dict[str, Tensor]) -> list:
@@ -124,6 +129,9 @@ class SkedMixin(SkedEdit):
 
     def _freeze_base(self, **modules: torch.nn.Module) -> None:
         super()._freeze_base(**modules)
+        if self.local_field is not None:  # the base's modules are the base: no gradient, no optimiser, not saved
+            for module in modules.values():
+                module.requires_grad_(False)
         # Torch hash grids without a host copy per call, the edit's and the frozen base's (hash_grid.py).
         use_fast_hash_grids(self, *self.frozen_base.modules())
 
@@ -151,7 +159,9 @@ class SkedMixin(SkedEdit):
         if getattr(self, "colour_residual", None) is not None:
             # Its linear layer starts at zero, so the grid gets no gradient until it moves: train it at the grids' rate.
             groups["hash_grids"] += list(self.colour_residual.linear.parameters())
-        return groups
+        if self.local_field is not None:
+            groups["fields"] = groups.get("fields", []) + list(self.local_field.head.parameters())
+        return {name: params for name, params in groups.items() if params}  # a local edit trains no base module
 
     # ---- model-specific hooks ------------------------------------------------------------
     def _render(self, ray_bundle: RayBundle) -> Tuple[Dict[str, Tensor], RaySamples, Dict]:
@@ -220,6 +230,8 @@ class SkedMixin(SkedEdit):
         base_field, mode = self.base_field, self.base_field.training
         base_field.train(self.field.training)  # the same appearance (a photo's while anchoring) on both sides
         try:
+            if self.local_field is not None:
+                return self._local_outputs(ray_samples, lambda s: evaluate(base_field, s))
             return held_field_outputs(self.in_chunks(lambda s: self._edit_colour(evaluate(self.field, s), s), self.field),
                                       self.in_chunks(lambda s: evaluate(base_field, s), base_field), ray_samples,
                                       self._kept(ray_samples.frustums.get_positions()))

@@ -35,8 +35,12 @@ def held_field_outputs(
     """
     with torch.no_grad():
         base = base_field(ray_samples)
-    edited = edit_field(ray_samples)
+    return hold(edit_field(ray_samples), base, kept), base
+
+
+def hold(edited: Dict, base: Dict, kept: Optional[Tensor]) -> Dict:
+    """The edit's outputs with the base's at `kept` samples (None: none), picked per sample with no host sync."""
     if kept is None:
-        return edited, base
+        return edited
     held = kept[..., None]
-    return {key: torch.where(held, base[key].detach().to(value.dtype), value) for key, value in edited.items()}, base
+    return {key: torch.where(held, base[key].detach().to(value.dtype), value) for key, value in edited.items()}

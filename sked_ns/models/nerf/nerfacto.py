@@ -76,7 +76,7 @@ class SkedNerfactoModel(SkedMixin, NerfactoModel):
         self._base_proposal_grids: Dict[int, BaseDensityGrid] = {}  # built on the device at the first step
         held = [self._base_proposal_grid_fn(i, fn) for i, fn in enumerate(base_fns)] \
             if self.config.base_proposal_grid > 0 else base_fns
-        self.density_fns = [self.held_density_fn(fn, held[min(i, len(held) - 1)]) for i, fn in enumerate(self.density_fns)]
+        self.density_fns = [self.edit_density_fn(fn, held[min(i, len(held) - 1)]) for i, fn in enumerate(self.density_fns)]
         self._boost_proposals_in_edit_box()
         self.density_fns = [self.in_chunks(fn, *self.proposal_networks) for fn in self.density_fns]
 
@@ -192,6 +192,8 @@ class SkedNerfactoModel(SkedMixin, NerfactoModel):
         return outputs, samples, field_outputs
 
     def _sampling_losses(self, rendered: Sequence[Dict[str, Tensor]]) -> Dict[str, Tensor]:
+        if self.local_field is not None:  # the proposals are the base's, moved by the residual: nothing to train
+            return {}
         loss = sum(interlevel_loss(r["weights_list"], r["ray_samples_list"]) for r in rendered)
         return {"interlevel_loss": self.config.interlevel_loss_mult * loss}
 

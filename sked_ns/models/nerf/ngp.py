@@ -68,7 +68,7 @@ class SkedNGPModel(SkedMixin, NGPModel):
         base = self.frozen_base
         self.frozen_base = base.with_sampler(VolumetricSampler(occupancy_grid=base.occupancy_grid, density_fn=base.field.density_fn))
         # The edit's grid and marcher see kept cells as the base's: a kept cell never turns off.
-        self.held_density = self.held_density_fn(self.in_chunks(self.field.density_fn, self.field),
+        self.held_density = self.edit_density_fn(self.in_chunks(self.field.density_fn, self.field),
                                                  self.in_chunks(base.field.density_fn, base.field))
         self.sampler.density_fn = self.held_density
         resolution = self.occupancy_grid.resolution.tolist()

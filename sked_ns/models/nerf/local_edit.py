@@ -1,0 +1,106 @@
+"""A NeRF edit as a residual over its box (local_field.py): what it builds, evaluates, trains and saves.
+
+`SkedMixin` takes these methods; with `nerf_edit_field = "full-copy"` (and for an edit saved by 0.7 or earlier,
+found by its checkpoint's keys) `local_field` is None and the edit is a trainable copy of the whole base, as before.
+"""
+
+from __future__ import annotations
+
+from typing import Dict, List, Optional, Tuple
+
+import numpy as np
+import torch
+from nerfstudio.cameras.rays import RaySamples
+from nerfstudio.field_components.field_heads import FieldHeadNames
+from torch import Tensor
+
+from sked_ns.method.photo_anchor import editable_box
+from sked_ns.models.nerf.colour_residual import ColourResidual
+from sked_ns.models.nerf.held_field import hold
+from sked_ns.models.nerf.local_field import FULL_COPY, LocalResidual, base_grid_extent, local_grid_shape
+
+LOCAL_UNSAVED = ("field.", "proposal_networks.")
+"""A local edit's modules that are its base's (read from the edit's base copy, never saved with it)."""
+
+
+class LocalEdit:
+    """The local residual's part of a NeRF edit model (a mixin of `field_edit.SkedMixin`)."""
+
+    local_field: Optional[LocalResidual]  # set by SkedMixin._setup_sked
+
+    def _local_residual(self) -> LocalResidual:
+        """The residual over the box bounding every point with w <= keep_threshold (and the edit box), shaped by the
+        base's grid (local_field.local_grid_shape)."""
+        box = editable_box(lambda p: self.preservation_weight(p)[..., 0], self.scene_box.aabb,
+                           min(self.config.keep_threshold, 1.0))
+        low, high = self.edit_box.min, self.edit_box.max
+        if box is not None:
+            low, high = np.minimum(low, box[:3].numpy()), np.maximum(high, box[3:].numpy())
+        shape = local_grid_shape(self.field.mlp_base, base_grid_extent(self.field), high - low)
+        return LocalResidual(low, high, shape)
+
+    # ---- what a checkpoint holds ---------------------------------------------------------------
+    def _base_modules(self) -> List[torch.nn.Module]:
+        return [getattr(self, prefix.rstrip(".")) for prefix in self.BASE_PREFIXES]
+
+    def state_dict(self, *args, destination=None, prefix: str = "", keep_vars: bool = False):
+        """A local edit's checkpoint holds the edit alone: the base's modules are read from its base copy."""
+        state = super().state_dict(*args, destination=destination, prefix=prefix, keep_vars=keep_vars)
+        if self.local_field is not None:
+            unsaved = tuple(prefix + name for name in LOCAL_UNSAVED)
+            for key in [key for key in state if key.startswith(unsaved)]:
+                del state[key]
+        return state
+
+    def load_state_dict(self, state_dict, strict: bool = True, *args, **kwargs):
+        """A local edit's checkpoint completed by the base's modules as loaded; an edit saved with a whole field
+        (0.7 and before) switches this model to that representation first."""
+        state = dict(state_dict)
+        if self.local_field is not None and any(key.startswith(LOCAL_UNSAVED) for key in state):
+            self._use_full_copy()
+        elif self.local_field is not None:
+            whole = torch.nn.Module.state_dict(self)
+            state.update({key: value for key, value in whole.items() if key.startswith(LOCAL_UNSAVED) and key not in state})
+        return super().load_state_dict(state, strict, *args, **kwargs)
+
+    def _use_full_copy(self) -> None:
+        """The edit as a trainable copy of the whole base (how 0.7 and earlier saved it)."""
+        self.local_field = None
+        self.config.nerf_edit_field = FULL_COPY
+        for module in self._base_modules():
+            module.requires_grad_(True)
+        if getattr(self.field, "embedding_appearance", None) is not None:
+            self.field.embedding_appearance.requires_grad_(False)
+        if self.config.colour_residual:
+            self.colour_residual = ColourResidual(self.edit_box.min, self.edit_box.max).to(self.edit_box_bounds.device)
+
+    def _local_outputs(self, ray_samples: RaySamples, evaluate_base) -> Tuple[Dict, Dict]:
+        """(the base's field outputs moved by the local residual, kept samples the base's; the base's)."""
+        with torch.no_grad():
+            base = self.in_chunks(evaluate_base, self.base_field)(ray_samples)
+        local, colour = self.local_field, self.config.colour_residual
+
+        def residual(points: Tensor, density: Tensor, rgb: Tensor) -> Dict[str, Tensor]:
+            inside, raw = local(points)
+            return {FieldHeadNames.DENSITY: local.density(density, inside, raw),
+                    FieldHeadNames.RGB: local.colour(rgb, inside, raw) if colour else rgb}
+
+        positions = ray_samples.frustums.get_positions()
+        edited = self.in_chunks(residual, local)(positions, base[FieldHeadNames.DENSITY], base[FieldHeadNames.RGB])
+        return hold({**base, **edited}, base, self._kept(positions)), base
+
+    def edit_density_fn(self, edit_fn, base_fn):
+        """The edit's density for samplers and occupancy grids: the base's at kept points; elsewhere `edit_fn` (a
+        trainable copy) or, for a local edit, the base's moved by the residual (without gradient)."""
+        held = self.held_density_fn(edit_fn, base_fn)
+
+        def density(positions: Tensor, times: Optional[Tensor] = None) -> Tensor:
+            if self.local_field is None:
+                return held(positions, times)
+            with torch.no_grad():
+                base = base_fn(positions, times)
+                kept = self._kept(positions)
+                edited = self.local_field.density_at(base, positions)
+            return edited if kept is None else torch.where(kept[..., None], base, edited)
+
+        return density

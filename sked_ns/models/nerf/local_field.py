@@ -1,0 +1,130 @@
+"""The edit's own capacity, only where it may act: a residual on the frozen base over the editable region's box.
+
+Everywhere a sample's preservation weight is above keep_threshold the edit *is* the base (held_field.py), so a
+trainable copy of the whole field (every hash level over the whole scene, the MLPs, the proposal networks, and
+Adam's two moments for each) can change nothing there. The local edit trains only a small field over the box that
+bounds the points with w <= keep_threshold (the edit box padded as the preservation falloff reaches):
+
+    sigma_e(x) = max(0, sigma_o(x) m(x) + a(x)),   m = 2 sigmoid(d(x)),   a = s (exp(g(x)) - 1)
+    c_e(x)     = sigmoid(logit(c_o(x)) + r(x))
+
+with (d, g, r) a multiresolution hash grid in box coordinates and a small MLP whose last layer starts at zero, so
+m = 1, a = 0, r = 0: the edit starts as the base bit for bit. m carves (it takes the base's density to 0) and a adds
+mass in empty space, growing by a factor each step as nerfacto's own exp density does; s is a density per box
+diagonal. Outside the box every output is the base's (a `torch.where` on the in-box test, no data-dependent shape).
+Below 0 the clamp passes only gradients asking for more density, so emptied space can be filled again. The grid's resolution
+follows the box, not the scene (`local_grid_shape`); docs/method.md, Local edit, gives the rule and what it costs.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Dict, Tuple
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from sked_ns.models.nerf.colour_residual import LOGIT_EPS
+from sked_ns.models.nerf.hash_grid import FastHashEncoding
+
+LOCAL, FULL_COPY = "local", "full-copy"
+"""The NeRF edit's representations: the residual over the box, or a trainable copy of the whole base (0.7's)."""
+MIN_LOG2_TABLE, MAX_LOG2_TABLE = 12, 15
+"""Bounds of the local grid's table: at 2^15 entries a level, an edit of nerfstudio's default nerfacto (2^19) holds
+a sixteenth of its base's grid."""
+HIDDEN = 32
+"""Width of the MLP head (nerfacto's proposal networks: 16)."""
+OUTPUTS = 5
+"""d (density scale), g (added density), r (three colour logits)."""
+
+
+def local_grid_shape(base_encoding: torch.nn.Module, base_extent: float, box_size: np.ndarray) -> Dict[str, int]:
+    """The local grid's levels and table from the base's grid (`base_encoding`: nerfstudio's MLPWithHashEncoding or
+    HashEncoding settings; docs/method.md, Local edit).
+
+    Resolution: as many finest cells across the box's longest side as the base's finest level has across the whole
+    space its grid covers (`base_extent`), so the box's finest cell is the base's scaled by box / scene: a box a tenth
+    of the scene gets ten times the base's detail there. Table: enough entries for a surface across the box at the
+    base's own resolution of it (pi n^2 cells, n the base's finest cells across the box), as a power of two within
+    [2^12, 2^15] and never above the base's.
+    """
+    levels, finest = int(base_encoding.num_levels), int(base_encoding.max_res)
+    across = finest * float(np.max(box_size)) / max(base_extent, 1e-9)  # the base's finest cells across the box
+    wanted = math.ceil(math.log2(max(math.pi * across * across, 1.0)))
+    log2 = min(max(wanted, MIN_LOG2_TABLE), MAX_LOG2_TABLE, int(base_encoding.log2_hashmap_size))
+    return {"num_levels": levels, "min_res": int(base_encoding.min_res), "max_res": max(finest, int(base_encoding.min_res)),
+            "log2_hashmap_size": log2, "features_per_level": int(base_encoding.features_per_level)}
+
+
+def base_grid_extent(field: torch.nn.Module) -> float:
+    """The model-frame width of the space a nerfstudio field's hash grid spans: its box, or for a contracted
+    (unbounded) field the contraction's [-2, 2], which is the model frame inside the unit ball."""
+    if getattr(field, "spatial_distortion", None) is not None:
+        return 4.0
+    aabb = field.aabb.detach().float().cpu()
+    return float((aabb[1] - aabb[0]).max())
+
+
+class LocalResidual(torch.nn.Module):
+    """(d, g, r) over a box: a torch hash grid in box coordinates and an MLP head that starts at zero."""
+
+    def __init__(self, low: np.ndarray, high: np.ndarray, shape: Dict[str, int]) -> None:
+        super().__init__()
+        bounds = np.stack([np.asarray(low, dtype=np.float64), np.asarray(high, dtype=np.float64)])
+        self.register_buffer("box", torch.as_tensor(bounds, dtype=torch.float32))
+        self.shape = dict(shape)
+        # Features at +-0.1 (nerfacto's 1e-3): with the head's last layer at zero the grid's first gradient is that
+        # layer's, which its input's scale sets (as the colour residual).
+        self.encoding = FastHashEncoding(**shape, hash_init_scale=0.1, implementation="torch")
+        self.head = torch.nn.Sequential(torch.nn.Linear(self.encoding.get_out_dim(), HIDDEN), torch.nn.ReLU(),
+                                        torch.nn.Linear(HIDDEN, OUTPUTS))
+        torch.nn.init.zeros_(self.head[-1].weight)
+        torch.nn.init.zeros_(self.head[-1].bias)
+        diagonal = float(np.linalg.norm(bounds[1] - bounds[0]))
+        self.density_scale = 1.0 / max(diagonal, 1e-6)
+
+    def forward(self, positions: Tensor) -> Tuple[Tensor, Tensor]:
+        """(inside (..., 1) bool, raw outputs (..., 5)) at model-frame positions (..., 3)."""
+        points = positions.detach().float()
+        low, high = self.box[0], self.box[1]
+        inside = ((points >= low) & (points <= high)).all(dim=-1, keepdim=True)
+        unit = ((points - low) / (high - low).clamp_min(1e-9)).clamp(0.0, 1.0)
+        raw = self.head(self.encoding(unit.reshape(-1, 3)).float())
+        return inside, raw.reshape(*positions.shape[:-1], OUTPUTS)
+
+    def density(self, base: Tensor, inside: Tensor, raw: Tensor) -> Tensor:
+        """max(0, sigma_o m + a) (`_FloorAtZero`); the base's density outside the box."""
+        sigma = base.float()
+        total = sigma * (2.0 * torch.sigmoid(raw[..., 0:1])) + self.density_scale * torch.expm1(raw[..., 1:2])
+        return torch.where(inside, _FloorAtZero.apply(total), sigma).to(base.dtype)
+
+    def colour(self, base: Tensor, inside: Tensor, raw: Tensor) -> Tensor:
+        """The base's colour moved by r in logit space, added as a difference (r = 0 gives the base bit for bit)."""
+        rgb = base.float()
+        logit = torch.logit(rgb.clamp(LOGIT_EPS, 1.0 - LOGIT_EPS))
+        moved = rgb + (torch.sigmoid(logit + raw[..., 2:5]) - torch.sigmoid(logit))
+        return torch.where(inside, moved, rgb).to(base.dtype)
+
+    def density_at(self, base: Tensor, positions: Tensor) -> Tensor:
+        """The edited density at positions given the base's there (samplers, occupancy grids)."""
+        inside, raw = self(positions)
+        return self.density(base, inside, raw)
+
+    def extra_repr(self) -> str:
+        return ", ".join(f"{key}={value}" for key, value in self.shape.items())
+
+
+class _FloorAtZero(torch.autograd.Function):
+    """max(0, x), whose gradient below 0 still passes where it asks for more density: emptied space can be filled
+    again, and a loss asking for less than empty does not drive the residual on without end."""
+
+    @staticmethod
+    def forward(ctx, total: Tensor) -> Tensor:
+        ctx.save_for_backward(total)
+        return total.clamp_min(0.0)
+
+    @staticmethod
+    def backward(ctx, grad: Tensor) -> Tensor:
+        (total,) = ctx.saved_tensors
+        return grad * ((total >= 0) | (grad < 0)).to(grad.dtype)

@@ -1,0 +1,188 @@
+"""The local NeRF edit (local_field.py, local_edit.py): a residual on the frozen base over the editable box only."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+from nerfstudio.field_components.encodings import HashEncoding
+from nerfstudio.field_components.field_heads import FieldHeadNames
+
+from sked_ns.engine.edit_run import edit_config
+from sked_ns.engine.trainer import resolve_edit
+from sked_ns.evaluation.render import render_at, render_base_at
+from sked_ns.models.nerf.local_field import MAX_LOG2_TABLE, MIN_LOG2_TABLE, LocalResidual, local_grid_shape
+
+SHAPE = {"num_levels": 4, "min_res": 4, "max_res": 32, "log2_hashmap_size": 12, "features_per_level": 2}
+
+
+def _residual(seed: int = 0) -> LocalResidual:
+    torch.manual_seed(seed)
+    return LocalResidual(np.array([-0.5, -0.5, -0.5]), np.array([0.5, 0.5, 0.5]), SHAPE)
+
+
+def _points(count: int = 4096, seed: int = 1) -> torch.Tensor:
+    return torch.rand(count, 3, generator=torch.Generator().manual_seed(seed)) * 2.0 - 1.0  # half of them in the box
+
+
+def _moved(residual: LocalResidual, scale: float = 0.5) -> LocalResidual:
+    with torch.no_grad():
+        for parameter in residual.parameters():
+            parameter.add_(scale * torch.randn_like(parameter))
+    return residual
+
+
+def test_the_residual_starts_as_the_base_bit_for_bit():
+    residual, points = _residual(), _points()
+    density = torch.rand(len(points), 1) * 50.0
+    rgb = torch.rand(len(points), 3)
+    inside, raw = residual(points)
+    assert inside.any() and (~inside).any()
+    assert torch.equal(residual.density(density, inside, raw), density)
+    assert torch.equal(residual.colour(rgb, inside, raw), rgb)
+    half = density.half()  # a field evaluated under autocast
+    assert torch.equal(residual.density(half, inside, raw), half)
+
+
+def test_outside_the_box_the_edit_is_the_base_however_the_residual_moved():
+    residual, points = _moved(_residual()), _points()
+    density, rgb = torch.rand(len(points), 1) * 50.0, torch.rand(len(points), 3)
+    inside, raw = residual(points)
+    edited_density, edited_rgb = residual.density(density, inside, raw), residual.colour(rgb, inside, raw)
+    outside = ~inside[:, 0]
+    assert torch.equal(edited_density[outside], density[outside])
+    assert torch.equal(edited_rgb[outside], rgb[outside])
+    assert not torch.equal(edited_density[~outside], density[~outside]), "the residual moved inside the box"
+    # ... and no gradient reaches the residual from there.
+    loss = edited_density[outside].sum() + edited_rgb[outside].sum()
+    gradients = torch.autograd.grad(loss, list(residual.parameters()), allow_unused=True)
+    assert all(g is None or not g.any() for g in gradients)
+
+
+def _fit(residual: LocalResidual, base: torch.Tensor, target: torch.Tensor, points: torch.Tensor, steps: int):
+    optimiser = torch.optim.Adam([{"params": residual.encoding.parameters(), "lr": 5e-2},
+                                  {"params": residual.head.parameters(), "lr": 5e-3}], betas=(0.9, 0.99), eps=1e-15)
+    for _ in range(steps):
+        inside, raw = residual(points)
+        density = residual.density(base, inside, raw)
+        # L_pres-like squashed opacity at delta 0.07, as the edit's density losses see it
+        opacity = -torch.expm1(-density * 0.07)
+        loss = ((opacity - (-torch.expm1(-target * 0.07))) ** 2).mean()
+        optimiser.zero_grad()
+        loss.backward()
+        optimiser.step()
+    with torch.no_grad():
+        inside, raw = residual(points)
+        return residual.density(base, inside, raw)
+
+
+def test_the_residual_adds_mass_in_empty_space_and_carves_what_the_base_holds():
+    points = torch.rand(512, 3, generator=torch.Generator().manual_seed(3)) - 0.5  # all inside
+    empty, solid = torch.zeros(len(points), 1), torch.full((len(points), 1), 60.0)
+    added = _fit(_residual(), empty, solid, points, steps=30)
+    assert float((-torch.expm1(-added * 0.07)).median()) > 0.9, "empty space filled"
+    carved = _fit(_residual(), solid, empty, points, steps=30)
+    assert float((-torch.expm1(-carved * 0.07)).median()) < 0.1, "the base's mass carved away"
+    assert (carved >= 0).all() and (added >= 0).all()
+
+
+def test_carved_space_can_be_filled_again():
+    points = torch.rand(256, 3, generator=torch.Generator().manual_seed(4)) - 0.5
+    residual, base = _residual(), torch.full((len(points), 1), 5.0)
+    carved = _fit(residual, base, torch.zeros_like(base), points, steps=20)
+    assert float(carved.median()) < 1.5
+    # Carving stops pushing once the density is 0, so the way back is not a climb from wherever it drifted.
+    refilled = _fit(residual, base, torch.full_like(base, 60.0), points, steps=60)
+    assert float(refilled.median()) > float(base.median())
+
+
+@pytest.mark.parametrize("box_share", [1.0, 0.5, 0.1, 0.01])
+def test_the_grid_follows_the_box(box_share):
+    base = HashEncoding(num_levels=16, min_res=16, max_res=2048, log2_hashmap_size=19, implementation="torch")
+    base.max_res = 2048  # nerfstudio's MLPWithHashEncoding keeps it; HashEncoding does not
+    extent = 2.0
+    shape = local_grid_shape(base, extent, np.full(3, box_share * extent))
+    # The box's finest cell is at most the base's finest cell scaled by box / scene.
+    assert box_share * extent / shape["max_res"] <= (extent / 2048) * box_share * (1 + 1e-9)
+    assert MIN_LOG2_TABLE <= shape["log2_hashmap_size"] <= min(MAX_LOG2_TABLE, 19)
+    across = 2048 * box_share
+    if math.pi * across**2 < 2**MIN_LOG2_TABLE:
+        assert shape["log2_hashmap_size"] == MIN_LOG2_TABLE
+    small = HashEncoding(num_levels=4, min_res=16, max_res=64, log2_hashmap_size=10, implementation="torch")
+    small.max_res = 64
+    assert local_grid_shape(small, extent, np.full(3, box_share * extent))["log2_hashmap_size"] == 10  # never above
+
+
+# ---- on a demo base ----------------------------------------------------------------------------------------------
+def _model(scene, tmp_path, representation: str = "local"):
+    config = edit_config(scene["base"], scene["data"], scene["sketches"], tmp_path, iterations=5)
+    config.pipeline.model.nerf_edit_field = representation
+    resolve_edit(config)
+    model = config.pipeline.setup(device="cpu", test_mode="val").model
+    model.update_to_step(10**6)  # past the edit-box warm-up
+    if hasattr(model, "occupancy_grid"):  # the base's cells: the sampler as the base's, the field under test
+        model.occupancy_grid.binaries.copy_(model.frozen_base.occupancy_grid.binaries)
+    return model
+
+
+@pytest.mark.parametrize("base", ["scene", "ngp_scene"])
+def test_a_local_edit_trains_and_saves_only_its_residual(request, tmp_path, base):
+    model = _model(request.getfixturevalue(base), tmp_path)
+    assert model.local_field is not None
+    trainable = {id(p) for group in model.get_param_groups().values() for p in group}
+    assert trainable == {id(p) for p in model.local_field.parameters()}
+    saved = model.state_dict()
+    assert not [key for key in saved if key.startswith(("field.", "proposal_networks."))]
+    assert any(key.startswith("local_field.") for key in saved)
+    view = model.sketch_set.views[0]
+    edit, base_render = render_at(model, view, 24), render_base_at(model, view, 24)
+    assert torch.equal(edit["rgb"], base_render["rgb"]), "the edit starts as the base bit for bit"
+    # A moved residual moves only what is in the box and not kept.
+    with torch.no_grad():
+        for parameter in model.local_field.parameters():
+            parameter.add_(0.3 * torch.randn(parameter.shape, generator=torch.Generator().manual_seed(0)))
+    moved = render_at(model, view, 24)
+    same = (moved["rgb"] == base_render["rgb"]).all(dim=-1).flatten()
+    camera_rays = model._collide(_view_rays(view, 24))
+    away = model.photo_rays_kept(camera_rays)
+    assert bool(same[away].all()) and not bool(same.all())
+    # Loading the saved state back restores the residual and keeps the base.
+    fresh = _model(request.getfixturevalue(base), tmp_path / "again")
+    fresh.load_state_dict(model.state_dict())
+    assert fresh.local_field is not None
+    assert torch.equal(render_at(fresh, view, 24)["rgb"], moved["rgb"])
+
+
+def _view_rays(view, resolution):
+    from sked_ns.sketches.sketch_set import sketch_view_at
+
+    camera = sketch_view_at(view, resolution)[0]
+    return camera.generate_rays(camera_indices=0, keep_shape=True).flatten()
+
+
+def test_gradients_of_a_local_edit_reach_only_its_residual(scene, tmp_path):
+    model = _model(scene, tmp_path).train()
+    outputs, samples, field_outputs = model._render(model._collide(_view_rays(model.sketch_set.views[1], 16)))
+    loss = field_outputs[FieldHeadNames.DENSITY].sum() + field_outputs[FieldHeadNames.RGB].sum()
+    loss.backward()
+    for name, parameter in model.named_parameters():
+        if not name.startswith("local_field."):
+            assert parameter.grad is None, name
+    assert any(p.grad is not None and p.grad.any() for p in model.local_field.parameters())
+
+
+def test_an_edit_saved_as_a_whole_field_loads_as_one(scene, tmp_path):
+    full = _model(scene, tmp_path / "full", "full-copy")
+    with torch.no_grad():
+        for parameter in full.field.parameters():
+            parameter.add_(0.05 * torch.randn(parameter.shape, generator=torch.Generator().manual_seed(1)))
+    saved = full.state_dict()
+    assert any(key.startswith("field.") for key in saved)
+    local = _model(scene, tmp_path / "local")  # a config.yml without the setting reads today's default
+    local.load_state_dict(saved)
+    assert local.local_field is None and local.config.nerf_edit_field == "full-copy"
+    assert any(p.requires_grad for p in local.field.parameters())
+    view = local.sketch_set.views[0]
+    assert torch.equal(render_at(local, view, 24)["rgb"], render_at(full, view, 24)["rgb"])
