@@ -12,7 +12,7 @@ field (paper Eq. 4). The base's Gaussians are split once, at set-up:
   `gauss_params`, optimised at the edit's Adam rates (edit_rates: splatfacto's are sized for 30,000
   steps) and refined by splatfacto's strategy (gsplat's DefaultStrategy), which never sees the kept
   ones. L_pres holds each editable base Gaussian to its base values (opacity, colour, position,
-  scale, rotation) weighted by its w.
+  scale, rotation) weighted by its w (its targets, too, are saved only once refinement moves them: saved.py).
 
 Both sets are rendered in one pass, kept first; the scene's `means`, `scales`, ... (what
 `ns-export gaussian-splat` and the viewer read) are the two concatenated. The editable opacity
