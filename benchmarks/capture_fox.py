@@ -1,0 +1,119 @@
+"""Sketch sets on instant-ngp's fox, made programmatically as the benchmark needs them, and their checks.
+
+    python benchmarks/capture_fox.py sketches DATA OUT [--views 0001 0025]   # a hat region on the fox's head
+    python benchmarks/capture_fox.py check DATA SKETCHES                     # placement and edit box, both frames
+
+DATA is the dataset `benchmarks/capture_prep.py` wrote. A sketch view stands where a photo was taken (its
+camera, as a user snaps the viewer to a training camera before sketching), and its mask is the silhouette of a
+ball over the fox's forehead, where a hat would go: `HAT` in the data frame of the fox's transforms.json,
+found by projecting it onto the photos (its place is relative to the point the cameras look at). The masks are
+pinhole silhouettes of the ball on the photo's camera without its lens, as the viewer shows a view.
+
+`check` reads the set as an edit does (the data frame mapped by nerfstudio-data with each --center-method) and
+prints what the placement checks and the edit box say: the warnings the set gives, whether the box holds the
+ball, and where the point the cameras look at (the fox) lands in nerfstudio's frame.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import warnings
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+import torch
+
+from sked_ns.demo.scenes.objects import sphere
+from sked_ns.demo.scenes.sphere import trace
+from sked_ns.sketches.sketch_set import SketchSet, SketchView, load_sketch_set, save_sketch_set
+
+HAT = ((0.68, -0.855, 1.45), 0.35)
+"""(centre, radius) of the hat region in the fox's data frame: over the forehead, between the ears."""
+VIEWS = ("0001", "0025")
+"""Two photos about 55 degrees apart along the arc: the fox's left side and its front."""
+
+
+def _frames(data: Path):
+    meta = json.loads((data / "transforms.json").read_text())
+    return meta, {Path(frame["file_path"]).stem: np.asarray(frame["transform_matrix"])[:3] for frame in meta["frames"]}
+
+
+def hat_sketches(data: Path, views: Sequence[str] = VIEWS) -> SketchSet:
+    """The hat region's silhouette at each named photo's camera (pinhole, the photo's size)."""
+    meta, poses = _frames(data)
+    centre, radius = HAT
+    sketch_views = []
+    for name in views:
+        if name not in poses:
+            raise SystemExit(f"error: --views {name}: no photo {name} in {data / 'transforms.json'}.")
+        pose = poses[name]
+        hit = trace(sphere(centre, radius), lambda p: p * 0 + 1, pose, meta["fl_x"], meta["w"], meta["h"])["hit"]
+        sketch_views.append(SketchView(mask=hit.numpy(), camera_to_world=pose, fl_x=meta["fl_x"], fl_y=meta["fl_x"],
+                                       cx=meta["w"] / 2, cy=meta["h"] / 2, name=f"fox@{name}"))
+    return SketchSet(views=sketch_views, frame="data")
+
+
+def check(data: Path, sketches: Path) -> dict:
+    """What the placement checks and the edit box say of the set, in the data frame and nerfstudio's."""
+    from nerfstudio.cameras.camera_utils import focus_of_attention
+    from nerfstudio.data.dataparsers.nerfstudio_dataparser import NerfstudioDataParserConfig
+
+    from sked_ns.method.edit_box import compute_edit_box
+    from sked_ns.sketches.placement import check_camera_placement
+    from sked_ns.sketches.sketch_set import DataparserTransform
+
+    sketch_set = load_sketch_set(sketches)
+    centre, radius = HAT
+    _, poses = _frames(data)
+    stacked = torch.as_tensor(np.stack(list(poses.values())), dtype=torch.float32)
+    looked_at = focus_of_attention(stacked, stacked[:, :3, 3].mean(dim=0)).double()
+    on_hat = torch.as_tensor(centre, dtype=torch.float64) + radius * 0.95 * torch.nn.functional.normalize(
+        torch.randn(2000, 3, dtype=torch.float64), dim=-1)
+    report = {}
+    for method in ("focus", "poses"):
+        outputs = NerfstudioDataParserConfig(data=data, center_method=method).setup().get_dataparser_outputs("train")
+        transform = DataparserTransform(outputs.dataparser_transform.numpy().astype(np.float64),
+                                        float(outputs.dataparser_scale))
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            views = sketch_set.in_model_frame(transform).views
+            check_camera_placement(views)
+            box = compute_edit_box(views, outputs.scene_box.aabb.numpy())
+        held = float(box.contains(transform.points_to_model(on_hat)).double().mean())
+        report[method] = {"warnings": [str(w.message) for w in caught],
+                          "looked_at_in_model_frame": transform.points_to_model(looked_at).numpy().round(3).tolist(),
+                          "box_min": box.min.round(3).tolist(),
+                          "box_max": box.max.round(3).tolist(), "hat_share_in_box": round(held, 3)}
+    return report
+
+
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    commands = parser.add_subparsers(dest="command", required=True)
+    make = commands.add_parser("sketches")
+    make.add_argument("data", type=Path)
+    make.add_argument("out", type=Path)
+    make.add_argument("--views", nargs="+", default=list(VIEWS))
+    test = commands.add_parser("check")
+    test.add_argument("data", type=Path)
+    test.add_argument("sketches", type=Path)
+    test.add_argument("--output", type=Path, help="also write the report here (JSON)")
+    arguments = parser.parse_args(argv)
+    if arguments.command == "sketches":
+        save_sketch_set(hat_sketches(arguments.data, arguments.views), arguments.out)
+        print(f"sketches of the hat region from {', '.join(arguments.views)} in {arguments.out}")
+    else:
+        report = {"data": str(arguments.data), "sketches": str(arguments.sketches),
+                  "views": [view.name for view in load_sketch_set(arguments.sketches).views],
+                  "scene_box": [[-1.0] * 3, [1.0] * 3], **check(arguments.data, arguments.sketches)}
+        text = json.dumps(report, indent=2)
+        print(text)
+        if arguments.output:
+            arguments.output.write_text(text + "\n")
+
+
+if __name__ == "__main__":
+    main(sys.argv[1:])
