@@ -97,3 +97,17 @@ def cv2_read(path):
     import cv2
 
     return cv2.imread(str(path), cv2.IMREAD_GRAYSCALE) > 127
+
+
+def test_the_catalogue_writes_the_capture_like_scene_through_its_own_lens(tmp_path):
+    import json
+
+    from sked_ns.demo.reference_guidance import reference_scene
+    from sked_ns.demo.scenes import capture, catalogue
+
+    assert catalogue.scene_named("bust") is capture.SCENES["bust"] is reference_scene("bust")
+    paths = catalogue.write_benchmark("bust", tmp_path, count=10, size=32)  # size: the portrait frames' height
+    meta = json.loads((paths["data"] / "transforms.json").read_text())
+    assert (meta["camera_model"], meta["h"], meta["w"]) == ("OPENCV", 32, 18) and len(meta["frames"]) == 10
+    target = json.loads((paths["target"] / "transforms.json").read_text())
+    assert target["k1"] == meta["k1"] and all("changed_mask_path" in frame for frame in target["frames"])
