@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import sys
 from pathlib import Path
 from typing import Dict, Optional
 
@@ -27,6 +28,7 @@ from sked_ns.errors import SkedUserError, warn
 from sked_ns.evaluation import novel_views
 from sked_ns.evaluation.clip_score import ClipScorer, orbit_cameras
 from sked_ns.evaluation.eval_args import DEFAULT_CLIP
+from sked_ns.evaluation.eval_cost import EvalWork, estimate_line, seconds_per_pixel
 from sked_ns.evaluation.eval_inputs import (
     check_base,
     check_device,
@@ -47,6 +49,7 @@ from sked_ns.progress import Progress
 from sked_ns.run_lock import describe, holder, writing
 from sked_ns.sketches.cameras import cameras_of
 from sked_ns.sketches.random_views import focal_from_fov
+from sked_ns.sketches.sketch_set import sketch_view_size
 
 ALEXNET_WEIGHTS = "alexnet-owt-7be5be79.pth"  # what torchvision fetches for torchmetrics' LPIPS
 REGION_IOS_OF_OTHER_BASE = ("n/a: --base's renders carry no preservation weight (only the edit's frozen copy of its "
@@ -144,6 +147,10 @@ def evaluate(edit_run: Path, base_run: Optional[Path] = None, sketches: Optional
     base_pipeline = None if own_base else load_pipeline(base_run, device, flag="--base")
     sketch_set = sketch_set.in_model_frame(edit_pipeline.datamanager.data_frame_transform)
     lpips, lpips_reason = _lpips_or_reason()
+    views_to_score, source = ([], None) if cameras == "none" else choose_novel_views(
+        edit_pipeline, cameras, target, novel_resolution, max_novel_views)
+    say_how_long(edit_pipeline.model, sketch_set, views_to_score, resolution, novel_resolution, device,
+                 clip_views if (prompt or model_config.prompt or "").strip() else 0, clip_resolution, own_base)
 
     views, rows = [], []
     progress = Progress("sked-eval", "sketch view", len(sketch_set.views))
@@ -195,7 +202,6 @@ def evaluate(edit_run: Path, base_run: Optional[Path] = None, sketches: Optional
     result.update(clip_similarities(edit_pipeline.model, sketch_set, prompt or model_config.prompt, clip_model,
                                     clip_views, clip_resolution, own_base))
     if cameras != "none":
-        views_to_score, source = choose_novel_views(edit_pipeline, cameras, target, novel_resolution, max_novel_views)
         # Against the edit's frozen copy of its base (bit-identical to the base), which knows the sketches.
         novel = novel_views.evaluate_novel_views(edit_pipeline.model, views_to_score, target=target is not None,
                                                  progress=Progress("sked-eval", "novel view", len(views_to_score)))
@@ -204,6 +210,20 @@ def evaluate(edit_run: Path, base_run: Optional[Path] = None, sketches: Optional
                                                  mode="bilinear")[0].permute(1, 2, 0) for row in novel.pop("rows")]
         result["novel_views"] = {"cameras": source, "resolution": novel_resolution, **novel}
     return {"metrics": result, "sheet": torch.cat(rows, dim=0)}
+
+
+def say_how_long(model, sketch_set, novel: list, resolution: int, novel_resolution: int, device: str,
+                 clip_views: int, clip_resolution: int, clip_base: bool) -> None:
+    """One line before the long work: how long this evaluation will take here (a small render timed, eval_cost.py)."""
+    def size(camera) -> tuple:
+        return int(camera.width.reshape(-1)[0]), int(camera.height.reshape(-1)[0])
+
+    work = EvalWork([sketch_view_size(view, resolution) for view in sketch_set.views],
+                    [size(view.camera) for view in novel], clip_views, clip_resolution, clip_base)
+    first = sketch_set.views[0]
+    per_pixel = seconds_per_pixel(lambda side: tuple(render_at(model, first, side)["rgb"].shape[1::-1]))
+    print(estimate_line(work, per_pixel, torch.device(device).type, resolution, novel_resolution), file=sys.stderr,
+          flush=True)
 
 
 def check_live_run(edit, output: Path, sheet: Path) -> None:

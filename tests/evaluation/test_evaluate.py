@@ -212,3 +212,25 @@ def test_an_edit_still_training_is_scored_only_from_outside_its_run_folder_and_i
     metrics = json.loads(output.read_text())
     assert metrics["step"] == step and metrics["checkpoint"].endswith(f"step-{step:09d}.ckpt")
     assert f"(the edit at step {step})" in capsys.readouterr().out
+
+
+def test_the_estimate_counts_every_render_and_offers_quicker_resolutions_when_long():
+    from sked_ns.evaluation.eval_cost import EvalWork, estimate_line
+
+    work = EvalWork([(256, 192)] * 2, [(256, 256)] * 12, clip_views=40, clip_resolution=128, clip_base=True)
+    assert work.pixels() == 2 * (2 * 256 * 192 + 12 * 256 * 256) + 2 * 40 * 128 ** 2  # base and edit each
+    line = estimate_line(work, 1e-3, "cpu", 256, 256)
+    assert line.startswith("sked-eval: about 51 min on cpu for 2 sketch views at 256 px and 12 novel views at 256 px")
+    assert "--resolution 128 --novel-resolution 128 takes about 29 min" in line
+    assert "--resolution" not in estimate_line(work, 1e-6, "cuda", 256, 256)  # a few seconds: nothing to offer
+    assert "--resolution" not in estimate_line(work.scaled(128, 128, 256, 256), 1e-3, "cpu", 128, 128)
+
+
+def test_the_first_line_says_how_long_the_evaluation_will_take(tiny_edit, tmp_path, monkeypatch, capsys):
+    sked_eval(monkeypatch, tiny_edit / "config.yml", "--output", tmp_path / "m.json", "--resolution", 16,
+              "--cameras", "orbit:2", "--novel-resolution", 16, "--clip-views", 1, "--clip-resolution", 16)
+    said = capsys.readouterr().err.splitlines()
+    first = next(index for index, line in enumerate(said) if line.startswith("sked-eval: "))
+    assert re.match(r"sked-eval: about [\d.,]+ (s|min) on cpu for 2 sketch views at 16 px and 2 novel views at 16 px, each "
+                    r"with the base and the edit", said[first]), said
+    assert any(line.startswith("sked-eval: sketch view 1/2") for line in said[first + 1:])
