@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import pytest
 
@@ -88,6 +89,10 @@ def test_a_demo_stopped_in_its_edit_continues_when_run_again(tmp_path, monkeypat
     assert summary["edit"] == "continued from step 4"
     [finished] = edit_runs(output)  # the stopped run was continued, not left behind
     assert finished != stopped and str(finished) == summary["edit_run"]
+    from nerfstudio.utils import writer
+
+    # nerfstudio's writers outlive their run: none may log into the removed run when this process edits again.
+    assert all(Path(w.tb_writer.log_dir).exists() for w in writer.EVENT_WRITERS if hasattr(w, "tb_writer"))
     record = json.loads((output / "edits" / rerun_module.EDIT_RECORD).read_text())
     assert [entry["runs"] for entry in record["edits"]] == [[str(finished.relative_to(output / "edits"))]]
 
