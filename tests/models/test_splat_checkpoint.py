@@ -133,8 +133,9 @@ def test_an_edit_saved_whole_by_an_earlier_version_loads_and_is_saved_whole_agai
 def test_a_progressive_edit_of_a_splat_edit_edits_the_composed_scene(saved_edit, splat_scene, tmp_path):  # noqa: F811
     """`ns-train sked --load-dir <splat edit> --progressive True`: the new edit's base is the earlier edit's whole
     scene (its base's kept Gaussians and its own), read through the new edit's copy of it, which holds the earlier
-    edit's own base too: the new edit loads, with that scene's kept rows, after the earlier edit is deleted."""
-    from sked_ns.engine.edit_run import edit_config, run_edit
+    edit's own base too: the new edit loads, with that scene's kept rows, after the earlier edit is deleted, and so
+    does a resume of it into a new folder after the new edit is deleted."""
+    from sked_ns.engine.edit_run import edit_config, resume_config, run_edit
 
     earlier_run = tmp_path / "earlier"
     shutil.copytree(saved_edit["run"], earlier_run)
@@ -155,3 +156,9 @@ def test_a_progressive_edit_of_a_splat_edit_edits_the_composed_scene(saved_edit,
     for name in GAUSSIAN_PARAMS:
         assert torch.equal(reloaded.kept[name], getattr(earlier, name).detach()[kept]), name
         assert torch.equal(getattr(reloaded, name), getattr(model, name).detach()), name
+    # Resumed into a new folder, it takes its base copy along, the earlier edit's base inside it.
+    resumed = run_edit(resume_config(trainer.base_dir, tmp_path / "resumed", iterations=2))
+    shutil.rmtree(trainer.base_dir)
+    reopened = loaded(resumed.base_dir / "config.yml")
+    for name in GAUSSIAN_PARAMS:
+        assert torch.equal(reopened.kept[name], getattr(earlier, name).detach()[kept]), name
