@@ -4,12 +4,13 @@ Keeping nerfstudio's `VanillaDataManager` (train dataset, pixel sampler, datapar
 outputs) is what lets `ns-export`, `ns-render` and the appearance embeddings work on an
 edited scene. SKED adds one random view aimed at the edit box per iteration and the fixed
 sketch views, rendered every iteration at reduced resolution for L_sil. Both come as rays
-(a NeRF renders rays) and as nerfstudio `Cameras` (a splat model renders whole images).
+(a NeRF renders rays) and as nerfstudio `Cameras` (a splat model renders whole images). An edit loaded to render
+after its data moved reads the edit's own record of its cameras instead of the data (engine/moved_data.py).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Dict, List, Optional, Tuple, Type
 
 import numpy as np
@@ -19,6 +20,7 @@ from nerfstudio.cameras.rays import RayBundle
 from nerfstudio.data.datamanagers.base_datamanager import VanillaDataManager, VanillaDataManagerConfig
 from nerfstudio.utils.rich_utils import CONSOLE
 
+from sked_ns.engine.moved_data import KEPT_VIEWS, KeptViewsConfig, PhotolessDataset, data_path, kept_frame
 from sked_ns.method.edit_box import EditBox
 from sked_ns.sketches.cameras import cameras_of, pinhole_rays
 from sked_ns.sketches.data_frame import SKETCH_FRAME, TRAINING_CAMERAS
@@ -55,12 +57,15 @@ def outputs_transform(outputs) -> DataparserTransform:
     return DataparserTransform(outputs.dataparser_transform.numpy().astype(np.float64), float(outputs.dataparser_scale))
 
 
-def sketch_frame_metadata(dataparser_config, outputs) -> Dict:
+def sketch_frame_metadata(dataparser_config, outputs, frame: Optional[DataparserTransform] = None) -> Dict:
     """The train dataset's metadata the model loads the sketch set with, from the train dataparser outputs: the
-    data -> model frame and the training cameras' positions with the scene box centre."""
+    data -> model frame (`frame` where it is known already) and the training cameras' positions with the scene box
+    centre."""
     from sked_ns.sketches.data_frame import data_frame_transform
 
-    return {SKETCH_FRAME: data_frame_transform(dataparser_config, outputs_transform(outputs)),
+    if frame is None:
+        frame = data_frame_transform(dataparser_config, outputs_transform(outputs))
+    return {SKETCH_FRAME: frame,
             TRAINING_CAMERAS: (outputs.cameras.camera_to_worlds[:, :, 3].numpy().astype(np.float64),
                                outputs.scene_box.get_center().numpy().astype(np.float64))}
 
@@ -68,10 +73,44 @@ def sketch_frame_metadata(dataparser_config, outputs) -> Dict:
 class SkedDataManager(VanillaDataManager):
     config: SkedDataManagerConfig
 
-    def __init__(self, *args, **kwargs):
-        super().__init__(*args, **kwargs)
+    def __init__(self, config: SkedDataManagerConfig, *args, **kwargs):
+        # Set by the pipeline for an edit loaded to render after its data moved: read in place of the data.
+        self.kept_views = vars(config).pop(KEPT_VIEWS, None)
+        if self.kept_views is not None:
+            self.moved_from = data_path(config)
+            config = replace(config, data=None, dataparser=KeptViewsConfig(data=self.moved_from, views=self.kept_views))
+        super().__init__(config, *args, **kwargs)
+        frame = kept_frame(self.kept_views) if self.kept_views is not None else None
         # nerfstudio hands the train dataset's metadata to the model: the sketch set needs this frame.
-        self.train_dataset.metadata.update(sketch_frame_metadata(self.config.dataparser, self.train_dataparser_outputs))
+        self.train_dataset.metadata.update(sketch_frame_metadata(self.config.dataparser, self.train_dataparser_outputs,
+                                                                 frame))
+
+    def create_train_dataset(self):
+        if self.kept_views is None:
+            return super().create_train_dataset()
+        return PhotolessDataset(self.train_dataparser_outputs, self.config.camera_res_scale_factor, self.moved_from,
+                                blank_items=True)  # the viewer draws each camera with its photo
+
+    def create_eval_dataset(self):
+        if self.kept_views is None:
+            return super().create_eval_dataset()
+        outputs = self.dataparser.get_dataparser_outputs(split=self.test_split)
+        return PhotolessDataset(outputs, self.config.camera_res_scale_factor, self.moved_from)
+
+    def setup_train(self) -> None:
+        if self.kept_views is None:  # without photos there is nothing to cache or sample
+            super().setup_train()
+
+    def setup_eval(self) -> None:
+        if self.kept_views is None:
+            super().setup_eval()
+            return
+        # What nerfstudio's evaluations iterate, reading a photo only when asked (which says where it was).
+        from nerfstudio.data.utils.dataloaders import FixedIndicesEvalDataloader, RandIndicesEvalDataloader
+
+        self.fixed_indices_eval_dataloader = FixedIndicesEvalDataloader(input_dataset=self.eval_dataset,
+                                                                        device=self.device)
+        self.eval_dataloader = RandIndicesEvalDataloader(input_dataset=self.eval_dataset, device=self.device)
 
     @property
     def dataparser_transform(self) -> DataparserTransform:
@@ -80,9 +119,7 @@ class SkedDataManager(VanillaDataManager):
     @property
     def data_frame_transform(self) -> DataparserTransform:
         """A sketch set's data frame (the data's transforms.json) -> model frame (sketches.data_frame.data_frame_transform)."""
-        from sked_ns.sketches.data_frame import data_frame_transform
-
-        return data_frame_transform(self.config.dataparser, self.dataparser_transform)
+        return self.train_dataset.metadata[SKETCH_FRAME]
 
     def attach_sketches(self, sketch_set: SketchSet, edit_box: EditBox, silhouette_resolution: int, guidance_resolution: int) -> None:
         """Precompute the sketch views (cameras, rays and masks) and the random-view sampler."""

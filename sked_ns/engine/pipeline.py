@@ -9,6 +9,7 @@ after its data moved is set up from that record (engine/moved_data.py).
 
 from __future__ import annotations
 
+import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal, Optional, Type
@@ -51,6 +52,7 @@ class SkedPipeline(VanillaPipeline):
             raise SkedUserError("SKED needs a sketch set: pass --sketches <folder with sketches.json>.")
         check_guidance(config.model.guidance, config.model.prompt)  # e.g. --prompt "" would carve: refused first
         if test_mode != "val":  # loaded to render: its photos are not needed, so its data may have moved
+            end_viewer_quietly()
             views = views_for_moved_data(config)
             if views is not None:
                 setattr(config.datamanager, KEPT_VIEWS, views)
@@ -94,6 +96,24 @@ class SkedPipeline(VanillaPipeline):
         data = self.datamanager.next_sked(step, photo_rays=photos and not images, photo_view=photos and images,
                                           random_view_camera=images)
         return self.model.get_sked_loss_dict(data, step)
+
+
+def end_viewer_quietly() -> None:
+    """`ns-viewer` serves until Ctrl-C, which nerfstudio's serving loop (a sleep in run_viewer._start_viewer) leaves
+    to Python, a traceback. In an ns-viewer process that loads an edit, and only there (stock methods' viewers are
+    left as nerfstudio has them), Ctrl-C ends it with one line instead; any other exception is shown as before."""
+    if Path(sys.argv[0]).name != "ns-viewer" or getattr(sys.excepthook, "ends_viewer_quietly", False):
+        return
+    shown = sys.excepthook
+
+    def hook(kind, value, traceback) -> None:
+        if issubclass(kind, KeyboardInterrupt):
+            sys.stderr.write("ns-viewer: stopped (Ctrl-C).\n")
+            return
+        shown(kind, value, traceback)
+
+    hook.ends_viewer_quietly = True
+    sys.excepthook = hook
 
 
 def refuse_multi_device(world_size: int) -> None:
