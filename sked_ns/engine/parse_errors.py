@@ -2,14 +2,15 @@
 
 nerfstudio parses `ns-train`'s arguments with tyro, which draws a multi-line box for a mistyped flag. tyro
 offers a hook that fires just before it reports a parse failure (`tyro._errors.on_parse_error`, a context
-variable): set only when the process is `ns-train sked*`, so every other method keeps tyro's box. The hook
-module is private to tyro; where it is missing or its events change shape, tyro's own box is shown instead.
+variable): set only when the process is `ns-train sked*`, so every other method keeps tyro's box, or `ns-train
+<a SKED method misspelt>`, where it says only that the method meant is SKED's. The hook module is private to tyro;
+where it is missing or its events change shape, tyro's own box is shown instead.
 
 tyro reads a command line in order: the edit's options, then a subcommand (a guidance, the dataparser's name)
 and the options of what it chose, each only after its subcommand. The hook reads the method's config as tyro
-does (hidden fields left out, each subcommand's own options) and the words typed, so a line says which of those
-was wrong: a misspelt flag or subcommand, an option of another guidance, a flag that swallowed the next one as
-its value, a word processor's dash.
+does (command_line.py: hidden fields left out, each subcommand's own options) and the words typed, so a line says
+which of those was wrong: a misspelt flag or subcommand (not the options after it, unrecognised for that alone), an
+option of another guidance, a flag that swallowed the next one as its value, a word processor's dash.
 """
 
 from __future__ import annotations
@@ -20,11 +21,9 @@ import re
 import sys
 import unicodedata
 from pathlib import Path
-from typing import Any, Dict, List, Optional, Sequence, Union, get_args, get_origin, get_type_hints
+from typing import List, Optional, Sequence, Tuple
 
-from typing_extensions import Annotated
-
-from sked_ns.engine.base_scene import dataparser_name
+from sked_ns.engine.command_line import DATAPARSER_GROUP, CommandLine, bare
 from sked_ns.errors import one_line
 from sked_ns.method.options import SkedOptions
 
@@ -42,11 +41,6 @@ def sked_train_method(argv: Sequence[str], methods: Sequence[str]) -> Optional[s
 SUGGESTIONS = 3
 """Close flags named after an unrecognised one (tyro's box lists them too)."""
 
-DATAPARSER = "--pipeline.datamanager.dataparser."
-"""nerfstudio gives the dataparser's fields after its subcommand, without this prefix."""
-
-DATAPARSER_GROUP = "dataparser"
-
 MODEL = "--pipeline.model."
 """An edit's model options: those tyro hides are the base's, copied from it."""
 
@@ -56,118 +50,6 @@ TYPOGRAPHIC_DASHES = "\u2010\u2011\u2012\u2013\u2014\u2015\u2212"
 KINDS = {"INT": ("an integer", "integers"), "FLOAT": ("a number", "numbers"), "STR": ("text", "texts"),
          "PATH": ("a path", "paths")}
 """tyro's metavars in words: one value, several."""
-
-
-@dataclasses.dataclass
-class CommandLine:
-    """What tyro offers on a method's command line, read from its config as tyro reads it."""
-
-    flags: List[str] = dataclasses.field(default_factory=list)
-    """Every option as typed, after its subcommand where it has one: `--prompt`, `nerfstudio-data --data`,
-    `pipeline.model.guidance:reference --pipeline.model.guidance.target`."""
-    hidden: List[str] = dataclasses.field(default_factory=list)
-    """Fields tyro is told to hide (`tyro.conf.Suppress`), as flags: an edit's model settings copied from its base."""
-    subcommands: Dict[str, str] = dataclasses.field(default_factory=dict)
-    """Each subcommand and the group it chooses in (`pipeline.model.guidance`, or the dataparser)."""
-    defaults: Dict[str, str] = dataclasses.field(default_factory=dict)
-    """Each group's default subcommand (its options, too, follow it only once it is named)."""
-
-    @classmethod
-    def of(cls, config) -> "CommandLine":
-        line = cls()
-        line._read(config, "--", "")
-        return line
-
-    def _read(self, config, prefix: str, subcommand: str) -> None:
-        hints = _type_hints(type(config))
-        for item in dataclasses.fields(config):
-            if item.init and not item.name.startswith("_"):
-                flag = prefix + item.name.replace("_", "-")
-                self._field(flag, getattr(config, item.name, None), hints.get(item.name), subcommand)
-
-    def _field(self, flag: str, value, hint, subcommand: str) -> None:
-        if _suppressed(hint):
-            self.hidden.append(f"{subcommand} {flag}".lstrip())
-        elif flag + "." == DATAPARSER:
-            from nerfstudio.configs.dataparser_configs import all_dataparsers
-
-            self.subcommands.update(dict.fromkeys(all_dataparsers, DATAPARSER_GROUP))
-            self.defaults[DATAPARSER_GROUP] = dataparser_name(value)
-            self._read(value, "--", dataparser_name(value))
-        elif _subcommand_types(hint):
-            group = flag[2:]
-            for name, member in _subcommand_types(hint).items():
-                self.subcommands[f"{group}:{name}"] = group
-                if type(value) is member:
-                    self.defaults[group] = f"{group}:{name}"
-                chosen = value if type(value) is member else _default_instance(member)
-                if chosen is not None:
-                    self._read(chosen, flag + ".", f"{group}:{name}")
-        elif dataclasses.is_dataclass(value) and not isinstance(value, type):
-            self._read(value, flag + ".", subcommand)
-        elif isinstance(value, dict) and value:  # tyro offers each key of a dict given in the config
-            for key, item in value.items():
-                self._field(f"{flag}.{str(key).replace('_', '-')}", item, None, subcommand)
-        elif not callable(value):  # a function or class is fixed: tyro offers no flag for it
-            self.flags.append(f"{subcommand} {flag}".lstrip())
-
-    def where(self, flag: str) -> List[str]:
-        """The subcommands after which `flag` is offered ("" for the edit's own options)."""
-        return [offered.rpartition(" ")[0] for offered in self.flags if bare(offered) == flag]
-
-    def options_of(self, subcommand: str) -> List[str]:
-        return [bare(flag) for flag in self.flags if flag.startswith(subcommand + " ")]
-
-    def chosen(self, group: str, words: Sequence[str]) -> Optional[str]:
-        """The group's subcommand among the words typed, if one is."""
-        named = [word for word in words if self.subcommands.get(word) == group]
-        return named[0] if named else None
-
-
-def _type_hints(config_class: type) -> Dict[str, Any]:
-    try:
-        return get_type_hints(config_class, include_extras=True)
-    except Exception:  # a forward reference tyro resolves its own way: the fields are read without their marks
-        return {}
-
-
-def _suppressed(hint) -> bool:
-    import tyro
-
-    return get_origin(hint) is Annotated and any(mark is tyro.conf.Suppress for mark in get_args(hint)[1:])
-
-
-def _subcommand_types(hint) -> Dict[str, type]:
-    """The subcommands tyro makes of a field's type (a Union of `tyro.conf.subcommand`-named types) by name."""
-    while get_origin(hint) is Annotated:
-        hint = get_args(hint)[0]
-    if get_origin(hint) is not Union:
-        return {}
-    named = {}
-    for member in get_args(hint):
-        marks = get_args(member)[1:] if get_origin(member) is Annotated else ()
-        for mark in marks:
-            if type(mark).__name__ == "_SubcommandConfig" and getattr(mark, "name", None):
-                named[mark.name] = get_args(member)[0]
-    return named
-
-
-def _default_instance(config_class: type):
-    try:
-        return config_class()
-    except Exception:  # a subcommand without defaults for all its fields: its options are not listed
-        return None
-
-
-def bare(flag: str) -> str:
-    """A flag without the subcommand it follows."""
-    return flag.rpartition(" ")[2]
-
-
-def flags_of(config) -> List[str]:
-    """The flags tyro derives from a config: each field by its dotted path, `_` written `-`, an option of a
-    subcommand after it (`nerfstudio-data --data`)."""
-    return CommandLine.of(config).flags
 
 
 def last_word(flag: str) -> str:
@@ -208,17 +90,43 @@ def _subcommand_advice(token: str, line: CommandLine, words: Sequence[str]) -> O
             return f"{token}: {chosen} was already given (one {group.rsplit('.', 1)[-1]} at a time)"
         return (f"{token} at that place (a subcommand comes after the edit's options and before the dataparser's "
                 f"name; its own options follow it)")
+    near, choices = _near_subcommands(token, line)
+    if not near and not choices:
+        return None
+    return f"unknown subcommand {token}" + (f" (did you mean {' or '.join(near)}?)" if near else "") + choices
+
+
+def _near_subcommands(token: str, line: CommandLine) -> Tuple[List[str], str]:
+    """The subcommands a word not offered most likely meant, and, where its group is right, the group's choices."""
+    if token[:1] in "-" + TYPOGRAPHIC_DASHES or token in line.subcommands:
+        return [], ""
     named, group = token.rpartition(":")[2], token.rpartition(":")[0]
     if group in line.subcommands.values():  # the group is right: match the name among its subcommands
         offered = {sub.rpartition(":")[2]: sub for sub, of in line.subcommands.items() if of == group}
         near = [offered[name] for name in difflib.get_close_matches(named, list(offered), n=SUGGESTIONS, cutoff=0.6)]
-        choices = f"; the {group.rsplit('.', 1)[-1]} subcommands are {', '.join(offered.values())}"
-    else:
-        near = difflib.get_close_matches(token, list(line.subcommands), n=SUGGESTIONS, cutoff=0.8)
-        choices = ""
-    if not near and not choices:
-        return None
-    return f"unknown subcommand {token}" + (f" (did you mean {' or '.join(near)}?)" if near else "") + choices
+        return near, f"; the {group.rsplit('.', 1)[-1]} subcommands are {', '.join(offered.values())}"
+    subcommands = list(line.subcommands)
+    # The nearest few, else the one nearest a shortened name (colmap-dat: colmap).
+    return (difflib.get_close_matches(token, subcommands, n=SUGGESTIONS, cutoff=0.8)
+            or difflib.get_close_matches(token, subcommands, n=1, cutoff=0.7)), ""
+
+
+def _misspelt_subcommand(token: str, line: CommandLine) -> bool:
+    return any(_near_subcommands(token, line))
+
+
+def _without_what_follows_misspelt_subcommands(tokens: Sequence[str], line: CommandLine) -> List[str]:
+    """The words after a misspelt subcommand are its options, unrecognised only because it was: left out (one
+    mistake said, not its consequences), up to the next word that is itself a misspelt subcommand."""
+    kept, skipping = [], False
+    for at, token in enumerate(tokens):
+        value = at > 0 and tokens[at - 1][:2] == "--" and "=" not in tokens[at - 1]  # an unrecognised flag's value
+        if not value and _misspelt_subcommand(token, line):
+            kept.append(token)
+            skipping = True
+        elif not skipping:
+            kept.append(token)
+    return kept
 
 
 def _misplaced(flag: str, line: CommandLine, words: Sequence[str]) -> Optional[str]:
@@ -267,7 +175,7 @@ def _advice(token: str, line: CommandLine, words: Sequence[str]) -> Optional[str
 def _options(tokens: Sequence[str], line: CommandLine) -> List[str]:
     """The unrecognised words that were meant as flags or subcommands, not values."""
     meant = [token for token in tokens if token[:1] in "-" + TYPOGRAPHIC_DASHES or ":" in token
-             or token in line.subcommands]
+             or token in line.subcommands or _misspelt_subcommand(token, line)]
     return meant or list(tokens)
 
 
@@ -277,7 +185,7 @@ def unrecognized(tokens: Sequence[str], line: CommandLine, words: Sequence[str] 
     if swallowed:  # the options after the subcommand are unrecognised only because it was read as a flag's value
         flag, subcommand = words[swallowed[0] - 1], words[swallowed[0]]
         return f"{flag} needs a value; it was followed by {subcommand}, which it took as its value"
-    options, said, plain = _options(tokens, line), [], []
+    options, said, plain = _options(_without_what_follows_misspelt_subcommands(tokens, line), line), [], []
     for option in options:
         advice = _advice(option, line, words)
         (said if advice else plain).append(advice or option)
@@ -416,17 +324,57 @@ def one_line_hook(command: str, config=None, words: Sequence[str] = ()):
     return hook
 
 
+METHOD_CUTOFF = 0.6
+"""How close a word that is no method must be to a SKED method's name to be taken for it (skd, sked-fst)."""
+
+
+def misspelt_sked_method(argv: Sequence[str], methods: Sequence[str]) -> Optional[str]:
+    """The SKED method `ns-train <word>` most likely meant, where the word is none of them but near one; else None."""
+    if len(argv) < 2 or Path(argv[0]).name not in TRAIN_COMMANDS or argv[1] in methods or argv[1][:1] == "-":
+        return None
+    near = difflib.get_close_matches(argv[1].lower(), list(methods), n=1, cutoff=METHOD_CUTOFF)
+    return near[0] if near else None
+
+
+def unknown_method_hook(word: str, sked_methods: Sequence[str]):
+    """For `ns-train <word>`, where the word is near a SKED method's name: tyro's report that the word is no method
+    becomes one line naming the method meant, when no registered method is nearer (a stock method's misspelling
+    keeps tyro's box); every other event, and any command where the word is a method, falls through to tyro."""
+
+    def hook(event) -> None:
+        from tyro import _errors as events
+
+        if not (isinstance(event, events.UnrecognizedArgs) and event.tokens and event.tokens[0] == word):
+            return
+        try:
+            from nerfstudio.configs.method_configs import all_methods
+        except Exception:  # nerfstudio's registry is not there to compare with: tyro's box
+            return
+        near = difflib.get_close_matches(word.lower(), list(all_methods), n=1, cutoff=METHOD_CUTOFF)
+        if word in all_methods or not near or near[0] not in sked_methods:
+            return
+        print(f"error: ns-train: no method {word} (did you mean ns-train {near[0]}? SKED's methods are "
+              f"{', '.join(sked_methods)}; see ns-train --help for all).", file=sys.stderr, flush=True)
+        raise SystemExit(2)
+
+    return hook
+
+
 def install_for_sked_train(methods, argv: Optional[Sequence[str]] = None) -> bool:
-    """Make `ns-train <SKED method>`'s parse errors one line (`methods`: name -> MethodSpecification); nothing for
-    any other process. True if installed."""
+    """Make `ns-train <SKED method>`'s parse errors one line (`methods`: name -> MethodSpecification), and
+    `ns-train <a SKED method misspelt>`'s unknown method; nothing for any other process. True if installed."""
     argv = sys.argv if argv is None else argv
     method = sked_train_method(argv, methods)
-    if method is None:
+    meant = misspelt_sked_method(argv, list(methods)) if method is None else None
+    if method is None and meant is None:
         return False
     try:
         from tyro._errors import _parse_error_hook
     except ImportError:  # a tyro without the hook: its box stays
         return False
     # Read when tyro.cli parses sys.argv, later in this same context.
-    _parse_error_hook.set(one_line_hook(f"ns-train {method}", methods[method].config, list(argv[2:])))
+    if method is None:
+        _parse_error_hook.set(unknown_method_hook(argv[1], list(methods)))
+    else:
+        _parse_error_hook.set(one_line_hook(f"ns-train {method}", methods[method].config, list(argv[2:])))
     return True

@@ -15,12 +15,16 @@ import pytest
 import tyro
 
 from sked_ns.engine import parse_errors
-from sked_ns.engine.parse_errors import CommandLine, close_flags, describe, flags_of, sked_train_method
+from sked_ns.engine.command_line import CommandLine, flags_of
+from sked_ns.engine.parse_errors import close_flags, describe, misspelt_sked_method, sked_train_method
+from sked_ns.guidance import guidance_components
 from sked_ns.session.methods import SESSION_METHODS
 
 tyro_errors = pytest.importorskip("tyro._errors", reason="a tyro without its parse-error hook keeps its box")
 
 SD, REFERENCE = "pipeline.model.guidance:stable-diffusion", "pipeline.model.guidance:reference"
+REFERENCE_SETTINGS = [f"--pipeline.model.guidance.{item.name.replace('_', '-')}"
+                      for item in dataclasses.fields(guidance_components()["reference"]) if item.init and item.name[0] != "_"]
 
 
 def test_only_an_ns_train_of_a_sked_method_is_recognised():
@@ -98,6 +102,19 @@ def _unrecognized(line, tokens, words):
     (["pipeline.model.guidanc:reference"], None, f"unknown subcommand pipeline.model.guidanc:reference "
                                                  f"(did you mean {REFERENCE}?)"),
     (["nerfstudio-dat"], None, "unknown subcommand nerfstudio-dat (did you mean nerfstudio-data?)"),
+    # The options after a misspelt subcommand were not recognised because it was not: it alone is said.
+    ([REFERENCE, "nerfstudio-dat", "--data", "D"], ["nerfstudio-dat", "--data", "D"],
+     "unknown subcommand nerfstudio-dat (did you mean nerfstudio-data?)"),
+    (["nerfstudio-dat", "--data", "D", "--downscale-factor", "2"], ["nerfstudio-dat", "--downscale-factor", "2"],
+     "unknown subcommand nerfstudio-dat (did you mean nerfstudio-data?)"),
+    (["colmap-dat", "--data", "D", "--colmap-path", "x"], ["colmap-dat", "--colmap-path", "x"],
+     "unknown subcommand colmap-dat (did you mean colmap?)"),
+    (["pipeline.model.guidance:refrence", "--pipeline.model.guidance.target", "vase"], None,
+     f"unknown subcommand pipeline.model.guidance:refrence (did you mean {REFERENCE}?); the guidance subcommands are "
+     f"{SD}, {REFERENCE}"),
+    (["--promt", "x", "nerfstudio-dat", "--data", "D"], ["--promt", "x", "nerfstudio-dat"],
+     "unrecognized option --promt (did you mean --prompt?); unknown subcommand nerfstudio-dat (did you mean "
+     "nerfstudio-data?)"),
     ([REFERENCE, SD], [SD], f"{SD}: {REFERENCE} was already given (one guidance at a time)"),
     # A word processor's dash, an en dash, one hyphen: the flag with two ASCII hyphens.
     (["\u2014prompt", "a hat"], None, "\u2014prompt begins with a typographic dash (em dash, what word processors "
@@ -110,8 +127,7 @@ def _unrecognized(line, tokens, words):
     # A guidance's setting where that guidance is not the one chosen, or before it is named.
     ([REFERENCE, "--pipeline.model.guidance.guidance-scale", "5"], ["--pipeline.model.guidance.guidance-scale", "5"],
      f"the guidance {REFERENCE} has no setting --pipeline.model.guidance.guidance-scale (a setting of {SD}, the "
-     "default guidance); its settings are --pipeline.model.guidance.target, --pipeline.model.guidance.weight, "
-     "--pipeline.model.guidance.sampling"),
+     f"default guidance); its settings are {', '.join(REFERENCE_SETTINGS)}"),
     (["--pipeline.model.guidance.guidance-scale", "5"], None,
      f"--pipeline.model.guidance.guidance-scale is a setting of {SD}, the default guidance: name the guidance "
      f"before it ({SD} --pipeline.model.guidance.guidance-scale ...)"),
@@ -230,6 +246,7 @@ def test_ns_train_sked_says_a_parse_error_in_one_line_and_other_methods_keep_tyr
     (["\u2014prompt", "a hat"], "type --prompt (two ASCII hyphens)"),
     ([REFERENCE, "--pipeline.model.guidance.guidance-scale", "5"],
      f"the guidance {REFERENCE} has no setting --pipeline.model.guidance.guidance-scale"),
+    ([REFERENCE, "nerfstudio-dat", "--data", "D"], "unknown subcommand nerfstudio-dat (did you mean nerfstudio-data?)"),
 ])
 def test_ns_train_sked_says_what_was_typed_wrong_and_what_to_type(argv, said):
     result = _ns_train("sked", *argv)
@@ -243,3 +260,41 @@ def test_the_flags_read_from_the_config_are_those_ns_train_sked_lists(line):
     assert listed.returncode == 0, listed.stderr
     shown = {flag.rstrip(".") for flag in re.findall(r"(?<![\w.-])--[a-z][\w.-]*", listed.stdout)} - {"--help"}
     assert shown == {flag for flag in line.flags if " " not in flag}
+
+
+def test_a_word_near_a_sked_method_alone_is_taken_for_it():
+    methods = list(SESSION_METHODS)
+    assert misspelt_sked_method(["/x/bin/ns-train", "skd"], methods) == "sked"
+    assert misspelt_sked_method(["/x/bin/ns-train", "sked-fst", "--load-dir", "x"], methods) == "sked-fast"
+    assert misspelt_sked_method(["/x/bin/ns-train", "SKED"], methods) == "sked"
+    for argv in (["/x/bin/ns-train", "sked"], ["/x/bin/ns-train", "nerfacto"], ["/x/bin/ns-train", "nesu"],
+                 ["/x/bin/ns-train", "--help"], ["/x/bin/ns-render", "skd"], ["/x/bin/ns-train"]):
+        assert misspelt_sked_method(argv, methods) is None, argv
+
+
+def test_an_unknown_method_near_a_sked_one_is_one_line_and_every_other_report_is_tyros(capsys):
+    methods = list(SESSION_METHODS)
+    with pytest.raises(SystemExit) as stopped:
+        parse_errors.unknown_method_hook("skd", methods)(
+            tyro_errors.UnrecognizedArgs(prog="ns-train", tokens=["skd", "--load-dir", "x"]))
+    assert stopped.value.code == 2
+    assert capsys.readouterr().err == ("error: ns-train: no method skd (did you mean ns-train sked? SKED's methods are "
+                                       "sked, sked-fast, sked-quality; see ns-train --help for all).\n")
+    # A registered method's own errors, a misspelling nearer a stock method, another event: tyro's box, as stock.
+    for word, event in [("sked", tyro_errors.UnrecognizedArgs(prog="ns-train", tokens=["sked", "--x"])),
+                        ("neus-fact", tyro_errors.UnrecognizedArgs(prog="ns-train", tokens=["neus-fact"])),
+                        ("skd", tyro_errors.UnrecognizedArgs(prog="ns-train", tokens=["--max-num-iteration"])),
+                        ("skd", tyro_errors.MissingArgs(prog="ns-train", missing_arguments=[], unrecognized_tokens=[],
+                                                        partial_output={}))]:
+        assert parse_errors.unknown_method_hook(word, methods)(event) is None, word
+    assert capsys.readouterr().err == ""
+
+
+@pytest.mark.slow
+def test_ns_train_of_a_misspelt_sked_method_says_the_method_meant_and_stock_misspellings_keep_tyros_box():
+    result = _ns_train("skd", "--load-dir", "x")
+    assert result.returncode == 2
+    assert _own_lines(result.stderr) == ["error: ns-train: no method skd (did you mean ns-train sked? SKED's methods "
+                                         "are sked, sked-fast, sked-quality; see ns-train --help for all)."], result.stderr
+    stock = _ns_train("nerfactoo")
+    assert stock.returncode == 2 and "error: ns-train" not in stock.stderr and "╭" in stock.stderr
