@@ -235,9 +235,16 @@ def check_data(config: TrainerConfig, base: BaseScene) -> None:
     if data is None or Path(data) == Path():
         raise SkedUserError(f"no --data: an edit reads the base's images through the base's dataparser, typed after "
                             f"every other flag: {dataparser_command(base)} (from {base.run_dir / 'config.yml'}).")
-    if not Path(data).exists():
-        raise SkedFileNotFoundError(f"--data {data}: no such file or folder. The base was trained with "
-                                    f"{dataparser_command(base)}.")
+    if Path(data).exists():
+        return
+    from sked_ns.engine.base_scene import run_data
+    from sked_ns.engine.moved_data import moved_data_error
+
+    saved = Path(run_data(base.config.pipeline.datamanager))
+    if base.family == "sked" and not config.progressive and Path(data).absolute() == saved.absolute():
+        raise moved_data_error(base.run_dir, Path(data), datamanager.dataparser)  # not typed: the edit's own data
+    known = f" The base was trained with {dataparser_command(base)}." if saved.exists() else ""
+    raise SkedFileNotFoundError(f"--data {data}: no such file or folder.{known}")
 
 
 def edit_model_config(model, base_model_config):
