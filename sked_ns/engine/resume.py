@@ -18,7 +18,7 @@ from typing import Dict, Iterator, Tuple
 from nerfstudio.utils.rich_utils import CONSOLE
 
 from sked_ns.engine.run_home import carry_home
-from sked_ns.errors import SkedUserError
+from sked_ns.errors import SkedUserError, warn
 
 RESUME_SETTABLE = (
     "output_dir", "experiment_name", "project_name", "max_num_iterations", "steps_per_save",
@@ -218,12 +218,25 @@ def resumed_config(config, saved, default, run_dir: Path, argv=None) -> None:
     if any(_under(path, DATA_SETTINGS) for path in typed):
         kept.update({path: copy.deepcopy(get_setting(config, path)) for path in DATA_SETTINGS})
     kept.update({name: getattr(config, name) for name in RUN_FIELDS if hasattr(config, name)})
+    method = config.method_name
     for item in fields(saved):
         if hasattr(config, item.name):
             setattr(config, item.name, copy.deepcopy(getattr(saved, item.name)))
     for path in sorted(kept):  # a subcommand's node before its own settings
         set_setting(config, path, kept[path])
     carry_home(config, saved, typed)
+    keep_sked_method(config, method, run_dir)
+
+
+def keep_sked_method(config, typed_method: str, run_dir: Path) -> None:
+    """A saved method_name that is no SKED method (a typo in an edited copy of config.yml) would name the new run's
+    method folder and a method no ns-train command knows: the edit is resumed as the method typed, said in one line."""
+    from sked_ns.engine.presets import PRESETS
+
+    if config.method_name not in PRESETS:
+        warn(f"{run_dir / 'config.yml'}: method_name {config.method_name!r} is no SKED method "
+             f"({', '.join(PRESETS)}); resuming the edit as {typed_method}, the method typed.")
+        config.method_name = typed_method
 
 
 def preset_config(method_name: str):
