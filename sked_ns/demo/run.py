@@ -44,6 +44,7 @@ from sked_ns.evaluation.metrics import intersection_over_sketch, psnr_outside
 from sked_ns.evaluation.novel_views import eval_split_views, evaluate_novel_views
 from sked_ns.method.edit_box import compute_edit_box
 from sked_ns.method.preservation import SketchDistanceField
+from sked_ns.progress import Progress
 from sked_ns.run_lock import hold
 from sked_ns.sketches.sketch_set import DataparserTransform, SketchSet, load_sketch_set, save_sketch_set
 
@@ -328,7 +329,9 @@ def _run(output: Path, rerun: Rerun, beta, size, iterations, base_steps, prompt,
         base_model = load_pipeline(base_run, device).model
         render_base = lambda view: render_at(base_model, view, size)  # noqa: E731
     rows, views = [], []
-    for view in sketches.in_model_frame(transform).views:
+    sketch_views = sketches.in_model_frame(transform).views
+    progress = Progress("sked-demo", "sketch view rendered", len(sketch_views))
+    for view in sketch_views:
         before, after, mask = render_base(view), render_at(edit_model, view, size), resized_mask(view, size)
         views.append({"ios_base": intersection_over_sketch(before["accumulation"], mask),
                       "ios_edit": intersection_over_sketch(after["accumulation"], mask),
@@ -337,9 +340,12 @@ def _run(output: Path, rerun: Rerun, beta, size, iterations, base_steps, prompt,
         sketched = after["rgb"].numpy().copy()
         sketched[outline > 0] = [1.0, 0.1, 0.1]
         rows.append(np.concatenate([before["rgb"].numpy(), after["rgb"].numpy(), sketched], axis=1))
+        progress.step()
     _write_png(output / "before_after.png", np.concatenate(rows, axis=0))
     # The edit from the base dataset's evaluation cameras, not only from the sketch views.
-    novel = evaluate_novel_views(edit_model, eval_split_views(edit_pipeline, size, (1.0, 1.0, 1.0)))
+    novel_views = eval_split_views(edit_pipeline, size, (1.0, 1.0, 1.0))
+    novel = evaluate_novel_views(edit_model, novel_views,
+                                 progress=Progress("sked-demo", "evaluation view rendered", len(novel_views)))
     _write_png(output / "novel_views.png", np.concatenate([row.numpy() for row in novel.pop("rows")], axis=0))
     summary["novel_views"] = novel
     summary.update(
