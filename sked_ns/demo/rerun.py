@@ -131,8 +131,7 @@ def _last_checkpoint(run: Path):
 def plan_edit(edits: Path, settings: dict, iterations: int) -> EditPlan:
     """Continue the latest run of the edit with `settings` that saved a checkpoint, when it is short of `iterations`;
     take it when it is done at exactly `iterations`; else start anew."""
-    entry = next((e for e in (_read(edits / EDIT_RECORD) or {}).get("edits", []) if e.get("settings") == settings), None)
-    chain = [edits / name for name in (entry or {}).get("runs", []) if (edits / name).is_dir()]
+    chain = [edits / name for name in _recorded_runs(edits, settings) if (edits / name).is_dir()]
     for run in reversed(chain):
         found = _last_checkpoint(run)
         if found is None:
@@ -148,10 +147,19 @@ def plan_edit(edits: Path, settings: dict, iterations: int) -> EditPlan:
     return EditPlan()
 
 
+def _entries(edits: Path) -> List[dict]:
+    entries = (_read(edits / EDIT_RECORD) or {}).get("edits", [])
+    return [entry for entry in entries if isinstance(entry, dict)] if isinstance(entries, list) else []
+
+
+def _recorded_runs(edits: Path, settings: dict) -> List[str]:
+    runs = next((entry.get("runs") for entry in _entries(edits) if entry.get("settings") == settings), None)
+    return [run for run in runs if isinstance(run, str)] if isinstance(runs, list) else []
+
+
 def record_runs(edits: Path, settings: dict, runs: List[Path]) -> None:
     """The edit with `settings` is now `runs` (oldest first), before the newest starts writing."""
-    record = _read(edits / EDIT_RECORD) or {}
-    entries = [e for e in record.get("edits", []) if isinstance(e, dict) and e.get("settings") != settings]
+    entries = [entry for entry in _entries(edits) if entry.get("settings") != settings]
     entries.append({"settings": settings, "runs": [str(Path(run).relative_to(edits)) for run in runs]})
     write_text_atomically(edits / EDIT_RECORD, json.dumps({"edits": entries}, indent=2))
 

@@ -100,3 +100,18 @@ def test_a_demo_stopped_in_its_edit_continues_when_run_again(tmp_path, monkeypat
     again = demo_run.run(output, size=24, iterations=8, base_steps=30)
     assert again["edit"] == "taken as done" and again["edit_run"] == str(finished)
     assert again["views"] == summary["views"]
+
+
+@pytest.mark.parametrize("text", ["", "{", "[]", '{"edits": 3}', '{"edits": [3, {"settings": 1, "runs": 5}]}'])
+def test_a_damaged_edit_record_starts_a_new_edit(tmp_path, text):
+    from sked_ns.demo.rerun import plan_edit, record_runs
+
+    edits = tmp_path / "edits"
+    edits.mkdir()
+    (edits / rerun_module.EDIT_RECORD).write_text(text)
+    settings = {"beta": 0.025}
+    plan = plan_edit(edits, settings, 10)
+    assert plan.run is None and plan.chain == []
+    record_runs(edits, settings, [edits / "edit" / "sked" / "run"])
+    assert plan_edit(edits, settings, 10).chain == []  # recorded, but never written: nothing to continue
+    assert json.loads((edits / rerun_module.EDIT_RECORD).read_text())["edits"][-1]["runs"] == ["edit/sked/run"]
