@@ -115,3 +115,21 @@ def test_a_damaged_edit_record_starts_a_new_edit(tmp_path, text):
     record_runs(edits, settings, [edits / "edit" / "sked" / "run"])
     assert plan_edit(edits, settings, 10).chain == []  # recorded, but never written: nothing to continue
     assert json.loads((edits / rerun_module.EDIT_RECORD).read_text())["edits"][-1]["runs"] == ["edit/sked/run"]
+
+
+def test_a_demo_stopped_in_its_base_fit_says_running_it_again_fits_the_base_again(tmp_path, monkeypatch, capsys):
+    from sked_ns.demo import cli
+    from sked_ns.demo import run as demo_run
+
+    def stopped(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(demo_run, "fit_base", stopped)
+    with pytest.raises(SystemExit) as stop:
+        cli.entrypoint(["--output", str(tmp_path / "demo"), "--device", "cpu"])
+    assert stop.value.code == 130
+    [line] = [line for line in capsys.readouterr().err.splitlines() if line.startswith("interrupted")]
+    assert line == (f"interrupted: sked-demo stopped by Ctrl-C while fitting the nerfacto base; running it again fits "
+                    f"the base again. Run the same command (sked-demo --output {tmp_path / 'demo'} --device cpu) to "
+                    "pick up where it stopped.")
+    assert reusable_base(tmp_path / "demo", "nerfacto", {}) is None
