@@ -110,9 +110,55 @@ def check_writable_folder(folder: Path, flag: str, typed=None) -> None:
         probe.write_bytes(b"")
         probe.unlink()
     except OSError as error:
+        check_name_lengths(folder, flag)  # a name too long: said as such, not as an unwritable place
         where = "" if typed is None or Path(typed) == folder else f" (the run folder {folder})"
         raise SkedUserError(f"{flag} {folder if typed is None else typed}: cannot write there{where}: "
                             f"{error.strerror or error} ({error.filename or folder}). Pass a writable {flag}.") from error
+
+
+NAME_SHOWN = 24
+"""Characters of an over-long file or folder name quoted in its error."""
+
+
+def existing_folder(path: Path) -> Path:
+    """The nearest of `path` and its parents that exists (a name too long for the file system exists nowhere)."""
+    path = Path(path).expanduser().absolute()
+    while path.parent != path:
+        with contextlib.suppress(OSError):
+            if path.exists():
+                break
+        path = path.parent
+    return path
+
+
+def _file_system_limit(folder: Path, name: str, default: int) -> int:
+    try:
+        return os.pathconf(folder, name)
+    except (OSError, ValueError, AttributeError):  # not reported there (or no pathconf): the usual Linux limits
+        return default
+
+
+def name_too_long(path: Path) -> "str | None":
+    """Why `path` can name no file on its file system (every operation on it fails with ENAMETOOLONG), or None."""
+    path = Path(path).expanduser().absolute()
+    existing = existing_folder(path)
+    longest = _file_system_limit(existing, "PC_NAME_MAX", 255)
+    for name in path.parts[1:]:
+        size = len(os.fsencode(name))
+        if size > longest:
+            shown = name if len(name) <= NAME_SHOWN else name[:NAME_SHOWN] + "..."
+            return f"the name {shown!r} is {size} bytes long, and the file system under {existing} allows {longest}"
+    size = len(os.fsencode(str(path)))
+    if size > _file_system_limit(existing, "PC_PATH_MAX", 4096):
+        return f"the path is {size} bytes long, more than this system allows"
+    return None
+
+
+def check_name_lengths(path: Path, flag: str) -> None:
+    """Refuse a path the user typed for `flag` that can name no file (a name too long), before it is looked for."""
+    why = name_too_long(path)
+    if why:
+        raise SkedUserError(f"{flag}: {why}. Pass a shorter {flag}.")
 
 
 class SkedWarning(UserWarning):

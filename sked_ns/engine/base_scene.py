@@ -19,7 +19,7 @@ import numpy as np
 import yaml
 
 from sked_ns.engine.run_home import written_in
-from sked_ns.errors import SkedFileNotFoundError, SkedUserError
+from sked_ns.errors import SkedFileNotFoundError, SkedUserError, check_name_lengths
 from sked_ns.models.registry import family, representation_of
 from sked_ns.sketches.sketch_set import DataparserTransform
 
@@ -108,6 +108,7 @@ def resolve_base(load_dir: Path, step: Optional[int] = None, flag: str = "--load
     """Accept `<run>`, `<run>/nerfstudio_models` or a `.ckpt` file; read and check config.yml. `flag` names the
     option the path came from in errors."""
     path = Path(load_dir).expanduser()
+    check_name_lengths(path, flag)  # a name too long for the file system fails exists() itself
     if not path.exists():
         raise SkedFileNotFoundError(f"{flag} {path}: no such file or folder.")
     if path.is_file():

@@ -12,7 +12,6 @@ from __future__ import annotations
 import copy
 import json
 import math
-import os
 from pathlib import Path
 
 import torch
@@ -20,7 +19,14 @@ import torch
 from sked_ns.engine.drawn_sketches import sketches_pending
 from sked_ns.engine.memory_plan import check_memory
 from sked_ns.engine.pipeline import refuse_multi_device
-from sked_ns.errors import SkedFileNotFoundError, SkedUserError, reading, warn
+from sked_ns.errors import (
+    SkedFileNotFoundError,
+    SkedUserError,
+    check_name_lengths,
+    existing_folder,
+    reading,
+    warn,
+)
 from sked_ns.guidance import check_guidance
 from sked_ns.method.options import is_carving
 from sked_ns.method.validation import check_optimizers, check_sketch_pixels
@@ -41,6 +47,7 @@ def check_edit_inputs(config) -> None:
         model.guidance.check_available()  # weights are loaded only at the first step
     if model.sketches is None:
         raise SkedUserError("ns-train sked needs the sketches: --sketches <folder with sketches.json>.")
+    check_name_lengths(Path(model.sketches), "--sketches")
     if sketches_pending(config):  # drawn in the viewer: checked, with what follows from them, when saved
         check_sketches_in_data(config, with_sketches=False)
         return
@@ -69,49 +76,15 @@ CHECKPOINT_MARGIN = 1.25
 """An edit's checkpoint against its base's: the same modules and optimiser state, plus what the edit adds."""
 
 
-NAME_SHOWN = 24
-"""Characters of an over-long folder name quoted in its error."""
-
-
-def _exists(path: Path) -> bool:
-    try:
-        return path.exists()
-    except OSError:  # e.g. a name too long for the file system: nothing is there
-        return False
-
-
-def _existing_ancestor(folder: Path) -> Path:
-    folder = Path(folder).absolute()
-    while not _exists(folder) and folder.parent != folder:
-        folder = folder.parent
-    return folder
-
-
-def _file_system_limit(folder: Path, name: str, default: int) -> int:
-    try:
-        return os.pathconf(folder, name)
-    except (OSError, ValueError, AttributeError):  # not reported here (or no pathconf): the usual Linux limits
-        return default
-
-
-def check_name_lengths(config) -> None:
-    """Every folder name of the run's path within what its file system allows: one too long fails every file
-    operation under it (ENAMETOOLONG), so it is refused naming the flag that gave it, before anything is looked for
-    there."""
-    run = Path(config.get_checkpoint_dir()).absolute()
-    existing = _existing_ancestor(run)
-    longest = _file_system_limit(existing, "PC_NAME_MAX", 255)
-    given = [("--output-dir", part) for part in Path(config.output_dir).parts]
-    given += [("--experiment-name", str(config.experiment_name)), ("--timestamp", str(config.timestamp))]
-    for flag, name in given:
-        if len(os.fsencode(name)) > longest:
-            shown = name if len(name) <= NAME_SHOWN else name[:NAME_SHOWN] + "..."
-            raise SkedUserError(f"{flag}: the folder name {shown!r} is {len(os.fsencode(name))} bytes long, and the "
-                                f"file system under {existing} allows {longest} a name. Pass a shorter {flag}.")
-    whole = len(os.fsencode(str(run / f"step-{0:09d}.ckpt")))
-    if whole > _file_system_limit(existing, "PC_PATH_MAX", 4096):
-        raise SkedUserError(f"--output-dir {config.output_dir}: the run's checkpoints would have paths {whole} bytes "
-                            "long, more than this system allows. Pass a shorter --output-dir.")
+def check_run_folder_names(config) -> None:
+    """Every name of the run's path within what its file system allows: one too long fails every file operation
+    under it (ENAMETOOLONG), so it is refused naming the flag that gave it, before anything is looked for there."""
+    output = Path(config.output_dir)
+    check_name_lengths(output, "--output-dir")
+    check_name_lengths(output / str(config.experiment_name), "--experiment-name")
+    run = output / str(config.experiment_name) / str(config.method_name) / str(config.timestamp)
+    check_name_lengths(run, "--timestamp")
+    check_name_lengths(Path(config.get_checkpoint_dir()) / f"step-{0:09d}.ckpt", "--output-dir")
 
 
 def check_disk_space(config) -> None:
@@ -123,7 +96,7 @@ def check_disk_space(config) -> None:
     from sked_ns.engine.kept_base import KEPT
     from sked_ns.method.frozen_base import base_weights
 
-    check_name_lengths(config)
+    check_run_folder_names(config)
     model = config.pipeline.model
     base = base_weights(model).stat().st_size if model.base_checkpoint else 0  # the edit's own copy once it has one
     sizes = [base] if base else []
@@ -135,7 +108,7 @@ def check_disk_space(config) -> None:
     folder = config.get_checkpoint_dir()
     own = model.base_kept is not None and Path(model.base_kept).parent == folder.parent.absolute() / KEPT
     copy = 0 if own or not base else base  # a new run folder gets its own copy of the base (at most this size)
-    free = shutil.disk_usage(_existing_ancestor(folder)).free
+    free = shutil.disk_usage(existing_folder(folder)).free
     gb = 2**30
     if free < 2 * size + copy:
         kept = f", and its copy of the base about {copy / gb:.2f} GB" if copy else ""

@@ -1,13 +1,15 @@
-"""Where an edit writes: a folder name longer than the file system takes is refused naming its flag, before anything
-is written (every file operation under such a name fails with ENAMETOOLONG)."""
+"""A file or folder name longer than the file system takes, where an edit writes or in what it reads, is refused in
+one line naming its flag, before anything is written (every file operation on such a name fails with
+ENAMETOOLONG, Path.exists() included)."""
 
 from __future__ import annotations
 
 import pytest
 
-from sked_ns.engine.edit_inputs import check_disk_space
+from sked_ns.engine.base_scene import resolve_base
+from sked_ns.engine.edit_inputs import check_disk_space, check_edit_inputs
 from sked_ns.engine.presets import edit_preset
-from sked_ns.errors import SkedUserError, excepthook
+from sked_ns.errors import SkedUserError, check_writable_folder, excepthook
 
 LONG = "a" * 300
 
@@ -38,7 +40,7 @@ def test_a_folder_name_too_long_for_the_file_system_is_refused_naming_its_flag(t
     with pytest.raises(SkedUserError) as refused:
         check_disk_space(config)
     message = str(refused.value)
-    assert message.startswith(f"{flag}: the folder name '{'a' * 24}...' is 300 bytes long") and \
+    assert message.startswith(f"{flag}: the name '{'a' * 24}...' is 300 bytes long") and \
         message.endswith(f"Pass a shorter {flag}."), message
     assert sorted(tmp_path.rglob("*")) == before, "nothing written"
     excepthook(type(refused.value), refused.value, None)
@@ -51,5 +53,24 @@ def test_names_the_file_system_takes_pass(tmp_path):
 
 def test_a_run_path_longer_than_the_system_takes_is_refused(tmp_path):
     deep = "/".join(["d" * 200] * 25)  # each name fits, the whole path does not
-    with pytest.raises(SkedUserError, match=r"^--output-dir .*: the run's checkpoints would have paths \d+ bytes long"):
+    with pytest.raises(SkedUserError, match=r"^--output-dir: the path is \d+ bytes long, more than this system allows"):
         check_disk_space(_config(tmp_path, output_dir=tmp_path / deep))
+
+
+@pytest.mark.parametrize("flag", ["--load-dir", "--load-checkpoint"])
+def test_a_scene_to_edit_with_a_name_too_long_is_refused_naming_its_flag(tmp_path, flag):
+    with pytest.raises(SkedUserError, match=rf"^{flag}: the name '{'a' * 24}\.\.\.' is 300 bytes long"):
+        resolve_base(tmp_path / LONG / "nerfstudio_models", flag=flag)
+
+
+def test_sketches_with_a_name_too_long_are_refused_naming_the_flag(tmp_path, monkeypatch):
+    config = _config(tmp_path)
+    config.pipeline.model.sketches, config.machine.device_type = tmp_path / LONG, "cpu"
+    monkeypatch.setattr("sked_ns.engine.edit_inputs.check_guidance", lambda *args: None)  # the sketches alone
+    with pytest.raises(SkedUserError, match=rf"^--sketches: the name '{'a' * 24}\.\.\.' is 300 bytes long"):
+        check_edit_inputs(config)
+
+
+def test_an_unwritable_output_folder_with_a_name_too_long_says_the_name_not_the_permissions(tmp_path):
+    with pytest.raises(SkedUserError, match=r"^--output-dir: the name 'a+\.\.\.' is 300 bytes long.*Pass a shorter"):
+        check_writable_folder(tmp_path / LONG / "scene", "--output-dir", tmp_path / LONG)
