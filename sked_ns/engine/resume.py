@@ -231,11 +231,13 @@ def resumed_config(config, saved, default, run_dir: Path, argv=None) -> None:
 def keep_sked_method(config, typed_method: str, run_dir: Path) -> None:
     """A saved method_name that is no SKED method (a typo in an edited copy of config.yml) would name the new run's
     method folder and a method no ns-train command knows: the edit is resumed as the method typed, said in one line."""
-    from sked_ns.engine.presets import PRESETS
+    from nerfstudio.plugins.registry import discover_methods
 
-    if config.method_name not in PRESETS:
+    methods, _ = discover_methods()
+    sked = sorted(name for name, method in methods.items() if type(method).__module__.startswith("sked_ns."))
+    if config.method_name not in sked:
         warn(f"{run_dir / 'config.yml'}: method_name {config.method_name!r} is no SKED method "
-             f"({', '.join(PRESETS)}); resuming the edit as {typed_method}, the method typed.")
+             f"({', '.join(sked)}); resuming the edit as {typed_method}, the method typed.")
         config.method_name = typed_method
 
 

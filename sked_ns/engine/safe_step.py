@@ -2,7 +2,8 @@
 
 nerfstudio's `Trainer.train_iteration` zeroes gradients, computes the loss, calls
 `grad_scaler.scale(loss).backward()`, steps each optimizer through `grad_scaler.step`, calls
-`grad_scaler.update()` and then the schedulers. SKED keeps that iteration as it is (gradient
+`grad_scaler.update()` and then the schedulers, under autocast at the device's default dtype (made SKED's for the
+iteration: `default_autocast_dtype`). SKED keeps that iteration as it is (gradient
 accumulation and `--log-gradients` included) and guards two of the objects it calls: the grad
 scaler never backpropagates a non-finite loss nor applies a non-finite gradient, and the
 optimizers' schedulers wait while an update is skipped. A skip is all or nothing: every
@@ -12,6 +13,7 @@ skips only the optimizers whose own gradients overflowed, and the others still s
 
 from __future__ import annotations
 
+import contextlib
 from typing import Callable, Iterable, Optional
 
 import torch
@@ -124,3 +126,14 @@ class GuardedOptimizers:
     def scheduler_step_all(self, step: int) -> None:
         if not self._guard.skipped:
             self._optimizers.scheduler_step_all(step)
+
+
+@contextlib.contextmanager
+def default_autocast_dtype(device_type: str, dtype: torch.dtype):
+    """nerfstudio's autocast takes the device's default dtype: make it SKED's for one iteration."""
+    previous = torch.get_autocast_dtype(device_type)
+    torch.set_autocast_dtype(device_type, dtype)
+    try:
+        yield
+    finally:
+        torch.set_autocast_dtype(device_type, previous)

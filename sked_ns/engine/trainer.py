@@ -33,7 +33,7 @@ from sked_ns.engine.edit_inputs import check_edit_inputs
 from sked_ns.engine.kept_base import STORE, keep_base, keep_sketches
 from sked_ns.engine.resume import preset_config, resumed_config, typed_settings
 from sked_ns.engine.run_home import HOME, WRITTEN_IN, config_file_being_read, home_run_folder, rehome
-from sked_ns.engine.safe_step import GuardedGradScaler, GuardedOptimizers, StepGuard
+from sked_ns.engine.safe_step import GuardedGradScaler, GuardedOptimizers, StepGuard, default_autocast_dtype
 from sked_ns.errors import SkedFileNotFoundError, SkedUserError, check_writable_folder
 from sked_ns.method.frozen_base import base_implementation
 from sked_ns.method.options import SkedOptions, copy_base_architecture
@@ -443,13 +443,3 @@ def interrupted_line(config: TrainerConfig, step: Optional[int]) -> str:
     return (f"interrupted {where}, before the edit's first checkpoint: nothing to resume. Start it again with "
             f"{restart_command(config)} (its other settings are in {run / 'config.yml'})")
 
-
-@contextlib.contextmanager
-def default_autocast_dtype(device_type: str, dtype: torch.dtype):
-    """nerfstudio's autocast takes the device's default dtype: make it SKED's for one iteration."""
-    previous = torch.get_autocast_dtype(device_type)
-    torch.set_autocast_dtype(device_type, dtype)
-    try:
-        yield
-    finally:
-        torch.set_autocast_dtype(device_type, previous)
