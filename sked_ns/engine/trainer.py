@@ -383,6 +383,10 @@ class SkedTrainer(Trainer):
             CONSOLE.print(f"[yellow]{self.skipped_steps} of {self.steps_run} steps "
                           f"({self.skipped_steps / self.steps_run:.1%}) skipped for a non-finite "
                           f"{', '.join(self.skipped_for)}: their updates were not applied[/yellow]")
+        # A finished edit's last checkpoint holds what it changed, not Adam's moments (twice its trainable state);
+        # continuing it to more iterations starts them again. An interrupted edit's checkpoints keep them.
+        for optimizer in self.optimizers.optimizers.values():
+            optimizer.state.clear()
         super()._after_train()
 
     @check_main_thread

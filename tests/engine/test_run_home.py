@@ -191,3 +191,10 @@ def test_a_copied_splat_edit_opens_and_resumes_with_the_original_gone(splat_edit
     assert pipeline.model.num_points == load_pipeline(copy).model.num_points > 0
     resumed = run_edit(resume_config(copy, iterations=3)).base_dir
     assert resumed.parent == copy.parent and torch.isfinite(_render(resumed, view)).all()
+
+
+def test_a_finished_edit_saves_what_it_changed_not_adams_moments(finished_edit):
+    original, _ = finished_edit
+    state = torch.load(sorted((original / "nerfstudio_models").glob("step-*.ckpt"))[-1], map_location="cpu")
+    assert state["optimizers"] and all(not optimizer["state"] and optimizer["param_groups"]
+                                       for optimizer in state["optimizers"].values())
