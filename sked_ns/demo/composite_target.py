@@ -76,16 +76,23 @@ def composite(base: Dict[str, Tensor], primitive: Dict[str, Tensor]) -> Dict[str
     return {"rgb": torch.where(changed[..., None], primitive["rgb"].to(base["rgb"]), base["rgb"]), "changed": changed}
 
 
-def render_base_with_depth(model, camera_to_world: np.ndarray, focal: float, width: int, height: int) -> Dict[str, Tensor]:
-    """A SKED model's frozen base at a pinhole view (model frame): "rgb" (h, w, 3), "accumulation" (h, w), "depth"
-    (h, w: expected distance along each unit ray) and the rays' "origins" and "directions" (h, w, 3)."""
+def pinhole(camera_to_world: np.ndarray, focal: float, width: int, height: int):
+    """A nerfstudio camera (model frame) centred on its image, as the guidance's random views are."""
     from nerfstudio.cameras.cameras import Cameras, CameraType
 
+    pose = torch.as_tensor(np.asarray(camera_to_world), dtype=torch.float32)[None]
+    return Cameras(camera_to_worlds=pose, fx=float(focal), fy=float(focal), cx=width / 2, cy=height / 2, width=width,
+                   height=height, camera_type=CameraType.PERSPECTIVE)
+
+
+def render_base_with_depth(model, camera) -> Dict[str, Tensor]:
+    """A SKED model's frozen base at one nerfstudio camera (model frame; a photo's lens included): "rgb" (h, w, 3),
+    "accumulation" (h, w), "depth" (h, w: expected distance along each unit ray) and the rays' "origins" and
+    "directions" (h, w, 3)."""
     from sked_ns.models.registry import renders_cameras
 
-    pose = torch.as_tensor(np.asarray(camera_to_world), dtype=torch.float32)[None].to(model.device)
-    camera = Cameras(camera_to_worlds=pose, fx=float(focal), fy=float(focal), cx=width / 2, cy=height / 2,
-                     width=width, height=height, camera_type=CameraType.PERSPECTIVE).to(model.device)
+    camera = camera.to(model.device)
+    height, width = int(camera.height.reshape(-1)[0]), int(camera.width.reshape(-1)[0])
     rays = camera.generate_rays(camera_indices=0, keep_shape=True)
     # The base as the guidance's base render sees it: with its average appearance where it has per-photo ones.
     appearance = getattr(model, "_average_appearance", nullcontext)
@@ -93,7 +100,7 @@ def render_base_with_depth(model, camera_to_world: np.ndarray, focal: float, wid
         if renders_cameras(model):
             outputs = model.render_base(camera)
             # The rasterizer's depth is along the camera's axis; along each ray it is that over the ray's cosine.
-            forward = -pose[0, :, 2]
+            forward = -camera.camera_to_worlds.reshape(-1, 3, 4)[0, :, 2]
             depth = outputs["depth"][..., 0] / (rays.directions @ forward).clamp_min(1e-6)
         else:
             flat = rays.flatten()
@@ -106,12 +113,12 @@ def render_base_with_depth(model, camera_to_world: np.ndarray, focal: float, wid
             "origins": rays.origins, "directions": rays.directions}
 
 
-def composite_target(model, primitive: Primitive, camera_to_world: np.ndarray, focal: float, width: int,
-                     height: int) -> Dict[str, Tensor]:
-    """The frozen base at a view with `primitive` set in, depth-tested: "rgb", "changed", and the base's "base"."""
-    base = render_base_with_depth(model, camera_to_world, focal, width, height)
+def composite_target(model, primitive: Primitive, camera) -> Dict[str, Tensor]:
+    """The frozen base at a nerfstudio camera with `primitive` set in, depth-tested: "rgb", "changed", and the
+    base's "base" (its render) and "silhouette" (where the primitive is, hidden or not)."""
+    base = render_base_with_depth(model, camera)
     # Cast on the CPU in float64, as the demo's analytic scenes are; a hit is a pixel-sized question.
     cast = primitive.cast(base["origins"].cpu().double(), base["directions"].cpu().double())
     cast = {"hit": cast["hit"].to(base["depth"].device), "distance": cast["distance"].to(base["depth"]),
             "rgb": cast["rgb"].to(base["rgb"])}
-    return {**composite(base, cast), "base": base["rgb"]}
+    return {**composite(base, cast), "base": base["rgb"], "silhouette": cast["hit"]}

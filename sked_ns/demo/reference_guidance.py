@@ -92,9 +92,9 @@ class ReferenceGuidance(Guidance):
         # Focal lengths are in pixels, so the frame's scale does not change them.
         size = (view.focal * factor, width * factor, height * factor)
         if self.config.primitive != "none":  # the model frame's view of the frozen base, the primitive set in
-            from sked_ns.demo.composite_target import composite_target
+            from sked_ns.demo.composite_target import composite_target, pinhole
 
-            composite = composite_target(self.model, self.primitive, view.camera_to_world, *size)
+            composite = composite_target(self.model, self.primitive, pinhole(view.camera_to_world, *size))
             target, changed = composite["rgb"], composite["changed"][..., None].float()
         else:
             pose = self.transform.invert(view.camera_to_world)

@@ -120,12 +120,12 @@ VASE_VIEW = orbit_pose(0.0, 10.0, CAMERA_RADIUS)  # from -y: the vase (x -0.15, 
 
 
 def _composite(primitive_box, kind="ball", size=1.0):
-    from sked_ns.demo.composite_target import Primitive, composite_target, render_base_with_depth
+    from sked_ns.demo.composite_target import Primitive, composite_target, pinhole, render_base_with_depth
 
     model = _AnalyticBase(primitive_box)
     primitive = Primitive.in_edit_box(kind, (0.1, 0.9, 0.1), (0.5, 0.5, 0.5), size, primitive_box)
-    result = composite_target(model, primitive, VASE_VIEW, 1.1 * 64, 64, 64)
-    base = render_base_with_depth(model, VASE_VIEW, 1.1 * 64, 64, 64)
+    result = composite_target(model, primitive, pinhole(VASE_VIEW, 1.1 * 64, 64, 64))
+    base = render_base_with_depth(model, pinhole(VASE_VIEW, 1.1 * 64, 64, 64))
     silhouette = primitive.cast(base["origins"].double(), base["directions"].double())
     return result, base, silhouette
 
@@ -133,6 +133,7 @@ def _composite(primitive_box, kind="ball", size=1.0):
 def test_the_composite_is_the_base_render_outside_the_primitive_silhouette():
     result, base, silhouette = _composite(_box((0.1, -0.5, 0.3), (0.5, -0.1, 0.7)))  # a ball in the open, in front
     assert silhouette["hit"].sum() > 20 and torch.equal(result["changed"], silhouette["hit"])  # nothing in front of it
+    assert torch.equal(result["silhouette"], silhouette["hit"])
     outside = ~silhouette["hit"]
     assert torch.equal(result["rgb"][outside], base["rgb"][outside])
     assert torch.equal(result["base"], base["rgb"])
@@ -151,7 +152,7 @@ def test_nearer_base_content_hides_the_primitive():
 
 
 def test_reference_guidance_takes_the_composite_as_its_target_and_its_changed_share():
-    from sked_ns.demo.composite_target import Primitive, composite_target
+    from sked_ns.demo.composite_target import Primitive, composite_target, pinhole
 
     edit_box = _box((0.1, -0.5, 0.3), (0.5, -0.1, 0.7))
     model = _AnalyticBase(edit_box)
@@ -161,7 +162,7 @@ def test_reference_guidance_takes_the_composite_as_its_target_and_its_changed_sh
                         direction="front")
     target, changed_colour, changed = guidance.target_image(view)
     primitive = Primitive.in_edit_box("cone", (0.9, 0.1, 0.8), (0.5, 0.5, 0.5), 0.7, edit_box)
-    expected = composite_target(model, primitive, VASE_VIEW, 1.1 * SIZE, SIZE, SIZE)
+    expected = composite_target(model, primitive, pinhole(VASE_VIEW, 1.1 * SIZE, SIZE, SIZE))
     assert torch.equal(changed[0, 0].bool(), expected["changed"]) and expected["changed"].sum() > 5
     assert torch.allclose(target[0].permute(1, 2, 0), expected["rgb"])
     base_image = expected["base"].permute(2, 0, 1)[None]
