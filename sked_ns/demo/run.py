@@ -272,6 +272,7 @@ def _settled_edit(output: Path, rerun: Rerun, base_run: Path, iterations: int, p
         return plan.run, "taken as done"
     if plan.run is not None:
         config = resume_config(plan.run, edits, iterations=iterations)
+        config.experiment_name = plan.run.parent.parent.name  # beside the run it continues
         config.machine.device_type, config.vis = device, "tensorboard"
     else:
         config = edit_config(base_run / "nerfstudio_models", output / "data", output / "sketches", edits,

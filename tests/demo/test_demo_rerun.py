@@ -89,6 +89,7 @@ def test_a_demo_stopped_in_its_edit_continues_when_run_again(tmp_path, monkeypat
     assert summary["edit"] == "continued from step 4"
     [finished] = edit_runs(output)  # the stopped run was continued, not left behind
     assert finished != stopped and str(finished) == summary["edit_run"]
+    assert finished.parent == stopped.parent  # continued beside it
     from nerfstudio.utils import writer
 
     # nerfstudio's writers outlive their run: none may log into the removed run when this process edits again.
