@@ -101,6 +101,23 @@ class SkedDataManager(VanillaDataManager):
         if self.kept_views is None:  # without photos there is nothing to cache or sample
             super().setup_train()
 
+    def next_train(self, step: int):
+        if self.kept_views is None:
+            return super().next_train(step)
+        # Without photos, rays through random pixels of the training cameras and no colours: what ns-export's point
+        # cloud samples (it keeps the model's colours along them).
+        from nerfstudio.model_components.ray_generators import RayGenerator
+
+        cameras = self.train_dataset.cameras
+        if getattr(self, "train_ray_generator", None) is None:
+            self.train_ray_generator = RayGenerator(cameras.to(self.device))
+        count = self.config.train_num_rays_per_batch
+        image = torch.randint(len(cameras), (count,))
+        row = (torch.rand(count) * cameras.height[image, 0]).long()
+        column = (torch.rand(count) * cameras.width[image, 0]).long()
+        indices = torch.stack([image, row, column], dim=-1)
+        return self.train_ray_generator(indices), {"indices": indices}
+
     def setup_eval(self) -> None:
         if self.kept_views is None:
             super().setup_eval()

@@ -103,6 +103,20 @@ def test_ns_render_of_an_edit_whose_data_moved_renders_the_same_image(moved):
     assert np.array_equal(after, moved["before"]["ns-render"])
 
 
+def test_ns_export_of_an_edit_whose_data_moved_samples_its_training_cameras(moved):
+    from nerfstudio.exporter.exporter_utils import generate_point_cloud
+
+    pipeline = _eval_setup(moved["run"], "test")  # as ns-export pointcloud and poisson load it
+    rays, batch = pipeline.datamanager.next_train(0)
+    cameras, (image, row, column) = pipeline.datamanager.train_dataset.cameras, batch["indices"].T
+    assert torch.allclose(rays.origins, cameras.camera_to_worlds[image, :, 3], atol=1e-6)
+    assert bool((row < cameras.height[image, 0]).all() and (column < cameras.width[image, 0]).all())
+    cloud = generate_point_cloud(pipeline, num_points=64, remove_outliers=False, reorient_normals=False,
+                                 estimate_normals=False, rgb_output_name="rgb", depth_output_name="depth",
+                                 normal_output_name=None)
+    assert len(cloud.points) >= 64 and np.isfinite(np.asarray(cloud.points)).all()
+
+
 def test_an_edit_without_a_record_of_its_cameras_says_to_put_the_data_back(moved, tmp_path):
     run = tmp_path / "run"
     shutil.copytree(moved["run"], run)
