@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import json
+import sys
 import warnings
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -131,3 +133,16 @@ def test_the_edit_renders_a_held_out_photo_through_its_lens(capture_edit, captur
         outputs = pipeline.model.get_outputs_for_camera(cameras[0:1])
     assert outputs["rgb"].shape == (HEIGHT, round(HEIGHT * capture.ASPECT), 3)
     assert torch.isfinite(outputs["rgb"]).all()
+
+
+def test_the_capture_measurement_reads_the_edit_at_its_held_out_photos(capture_edit):
+    sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "benchmarks"))
+    import capture_measure
+
+    result = capture_measure.measure(capture_edit["run"])
+    assert len(result["photos"]) == 1  # nerfstudio's eval split of 12 photos
+    row = result["photos"][0]
+    assert row["photo"].startswith("frame_") and row["composite_changed_pixels"] > 0
+    assert row["kept_difference_db"] == pytest.approx(row["edit_psnr_photo"] - row["base_psnr_photo"])
+    assert 5 < row["base_psnr_photo"] < 60 and 0 < row["edit_ssim_photo"] <= 1
+    assert row["edit_psnr_base"] > 20  # two steps move little outside the primitive
