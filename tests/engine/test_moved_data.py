@@ -204,3 +204,30 @@ def test_a_resume_after_the_data_moved_says_where_it_was_and_the_words_that_resu
     assert resumed != moved["run"] and (resumed / "nerfstudio_models" / "step-000000002.ckpt").exists()
     saved = yaml.load((resumed / "config.yml").read_text(), Loader=yaml.Loader)
     assert Path(saved.pipeline.datamanager.dataparser.data) == moved["new"]
+
+
+@pytest.mark.slow
+def test_a_splat_edit_whose_data_moved_renders_as_before(tmp_path):
+    import copy
+
+    from nerfstudio.engine.optimizers import Optimizers
+
+    from sked_ns.demo.scenes import sphere as demo_scene
+    from sked_ns.demo.splat_base import SplatFit, save_run, splatfacto_config
+    from sked_ns.method.options import without_lpips
+    from sked_ns.sketches.sketch_set import save_sketch_set
+
+    demo_scene.write_demo_dataset(tmp_path / "data", num_views=8, size=40)
+    save_sketch_set(demo_scene.demo_sketch_set(size=40), tmp_path / "sketches")
+    torch.manual_seed(0)
+    config = splatfacto_config(tmp_path / "data", tmp_path / "runs", SplatFit(steps=1, num_gaussians=16))
+    with without_lpips():
+        pipeline = config.pipeline.setup(device="cpu", test_mode="val")
+    base = save_run(config, pipeline, Optimizers(copy.deepcopy(config.optimizers), pipeline.model.get_param_groups()), 0)
+    run = run_edit(edit_config(base, tmp_path / "data", tmp_path / "sketches", tmp_path / "edits", iterations=2,
+                               steps_per_save=1, guidance_resolution=16, silhouette_resolution=16)).base_dir
+    pose = _eval_setup(run, "inference").datamanager.train_dataset.cameras.camera_to_worlds[0]
+    before = _render(_eval_setup(run, "inference"), pose)
+    (tmp_path / "data").rename(tmp_path / "moved")
+    for mode in ("inference", "test"):
+        assert torch.equal(_render(_eval_setup(run, mode), pose), before), mode
