@@ -25,7 +25,8 @@ CHANGED = 0.1
 """A pixel the edit changed: its colour moved by over this (of 1) in some channel from the base's."""
 
 
-def measure(edit: Path) -> dict:
+def measure(edit: Path, photos: int = 0) -> dict:
+    """The figures at the first `photos` held-out photos (0: all)."""
     from sked_ns.demo.composite_target import Primitive, composite_target
     from sked_ns.evaluation.metrics import psnr_inside, psnr_outside, ssim_outside
     from sked_ns.evaluation.render import load_pipeline, render_camera
@@ -38,7 +39,7 @@ def measure(edit: Path) -> dict:
     primitive = Primitive.in_edit_box(guidance.primitive, guidance.primitive_colour, guidance.primitive_centre,
                                       guidance.primitive_size, model.edit_box)
     rows = []
-    for index in range(len(dataset)):
+    for index in range(len(dataset) if photos <= 0 else min(photos, len(dataset))):
         camera = dataset.cameras[index:index + 1]
         photo = dataset.get_image_float32(index)[..., :3]
         base, edited = (render_camera(model, camera, base=flag)["rgb"] for flag in (True, False))
@@ -71,9 +72,10 @@ def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("edit", type=Path)
     parser.add_argument("--output", type=Path)
+    parser.add_argument("--photos", type=int, default=0, help="measure at the first N held-out photos (0: all)")
     arguments = parser.parse_args(argv)
     with torch.no_grad():
-        result = measure(arguments.edit)
+        result = measure(arguments.edit, arguments.photos)
     text = json.dumps(result, indent=2)
     print(text)
     if arguments.output:
