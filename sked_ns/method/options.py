@@ -117,7 +117,7 @@ class SkedOptions:
     base's density and colour (held_field.py; the editable field is trained only at the others), and splat bases'
     Gaussians whose centre's weight is above it are never optimised, densified, pruned or reset. The rest is held to
     the base by L_pres. 1 holds nothing exactly: the paper's soft L_pres alone."""
-    nerf_edit_field: Literal["local", "full-copy"] = "full-copy"
+    nerf_edit_field: Literal["local", "full-copy"] = "local"
     """NeRF bases: what the edit trains. "local": a residual on the frozen base over the box the edit may change
     (models/nerf/local_field.py), at a resolution that follows the box; the base's modules are neither trained nor
     saved with the edit. "full-copy": a trainable copy of the whole field and proposal networks (the paper's model;

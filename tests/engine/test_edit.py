@@ -24,7 +24,7 @@ from sked_ns.engine.edit_run import edit_config, resume_config, run_edit
 from sked_ns.engine.trainer import resolve_edit
 from sked_ns.errors import SkedUserError
 from sked_ns.evaluation.metrics import intersection_over_sketch, psnr_outside
-from sked_ns.evaluation.render import load_pipeline, render_at, resized_mask
+from sked_ns.evaluation.render import load_pipeline, render_at, render_base_at, resized_mask
 from sked_ns.method.frozen_base import read_model_state
 from sked_ns.sketches.sketch_set import SketchSet, SketchView, load_sketch_set, save_sketch_set
 
@@ -73,14 +73,13 @@ def test_base_files_untouched_and_base_field_frozen(scene, edited):
     frozen = model.base_field.state_dict()
     for key, value in frozen.items():
         assert torch.equal(value, base_state[f"field.{key}"]), key
-    changed = [key for key, value in model.field.state_dict().items() if not torch.equal(value, base_state[f"field.{key}"])]
-    assert changed, "the editable field did not change"
-    # The frozen base is not in the checkpoint, nor is any guidance weight.
+    assert model.local_field.head[-1].weight.any(), "the edit's residual did not change"
+    # The base (frozen, or its field and proposals the edit does not train) is not in the checkpoint, nor is any
+    # guidance weight: the edit is its residual alone.
     checkpoint = torch.load(sorted((edited["run"] / "nerfstudio_models").glob("*.ckpt"))[-1], map_location="cpu")
     top_level = {key.split(".")[1] for key in checkpoint["pipeline"] if key.startswith("_model.")}
-    assert top_level <= {"field", "proposal_networks", "camera_optimizer", "device_indicator_param", "_extra_state",
-                         "colour_residual"}, top_level
-    assert "colour_residual" in top_level  # the edit's own colour capacity is saved with it
+    assert top_level <= {"local_field", "camera_optimizer", "device_indicator_param", "_extra_state"}, top_level
+    assert "local_field" in top_level
     assert checkpoint["pipeline"]["_model._extra_state"] == {"sked_step": ITERATIONS - 1}
 
 
@@ -183,9 +182,11 @@ def test_progressive_edit_uses_the_edit_as_base(scene, edited, tmp_path):
     assert config.load_dir is None
     assert config.pipeline.model.base_checkpoint.parent == edited["run"] / "nerfstudio_models"
     pipeline = config.pipeline.setup(device="cpu", test_mode="val")
-    edited_state = read_model_state(config.pipeline.model.base_checkpoint)
-    for key, value in pipeline.model.base_field.state_dict().items():
-        assert torch.equal(value, edited_state[f"field.{key}"]), key
+    # The earlier edit saved its residual alone: the new edit's frozen base is that edit, rendering as it does.
+    view = pipeline.model.sketch_set.views[0]
+    earlier = load_pipeline(edited["run"]).model
+    assert torch.equal(render_base_at(pipeline.model, view, 16)["rgb"], render_at(earlier, view, 16)["rgb"])
+    assert render_at(earlier, view, 16)["accumulation"].sum() > render_base_at(earlier, view, 16)["accumulation"].sum()
 
 
 # ---- bad input -------------------------------------------------------------------------------
@@ -315,7 +316,8 @@ def test_nan_loss_skips_the_step_and_never_saves_nan(scene, tmp_path, monkeypatc
     config.set_timestamp()
     trainer = config.setup(local_rank=0, world_size=1)
     trainer.setup()
-    before = {k: v.clone() for k, v in trainer.pipeline.model.field.state_dict().items()}
+    trained = trainer.pipeline.model.local_field  # what the edit trains
+    before = {k: v.clone() for k, v in trained.state_dict().items()}
     original = trainer.pipeline.model.get_sked_loss_dict
 
     def poisoned(*args, **kwargs):
@@ -326,10 +328,10 @@ def test_nan_loss_skips_the_step_and_never_saves_nan(scene, tmp_path, monkeypatc
     monkeypatch.setattr(trainer.pipeline.model, "get_sked_loss_dict", poisoned)
     trainer.train_iteration(0)
     assert trainer.skipped_steps == 1
-    for key, value in trainer.pipeline.model.field.state_dict().items():
+    for key, value in trained.state_dict().items():
         assert torch.equal(value, before[key]), key
     with torch.no_grad():
-        next(trainer.pipeline.model.field.parameters()).fill_(float("nan"))
+        next(trained.parameters()).fill_(float("nan"))
     trainer.save_checkpoint(1)
     assert not list(trainer.checkpoint_dir.glob("*.ckpt")) if trainer.checkpoint_dir.exists() else True
 

@@ -67,6 +67,8 @@ def _moved_model(scene, tmp_path, keep_threshold: float):
     hash-grid collisions move them."""
     config = edit_config(scene["base"], scene["data"], scene["sketches"], tmp_path, iterations=5)
     config.pipeline.model.keep_threshold = keep_threshold
+    if keep_threshold >= 1:  # the paper's model: a whole field held softly (a local residual fades where w -> 1)
+        config.pipeline.model.nerf_edit_field = "full-copy"
     resolve_edit(config)
     model = config.pipeline.setup(device="cpu", test_mode="val").model
     model.update_to_step(10**6)  # past the edit-box warm-up

@@ -15,6 +15,7 @@ from sked_ns.engine.trainer import resolve_edit
 from sked_ns.evaluation.render import render_at, render_base_at
 from sked_ns.models.nerf.local_field import MAX_LOG2_TABLE, MIN_LOG2_TABLE, LocalResidual, local_grid_shape
 
+ONE = torch.ones(())  # 1 - w: fully editable
 SHAPE = {"num_levels": 4, "min_res": 4, "max_res": 32, "log2_hashmap_size": 12, "features_per_level": 2}
 
 
@@ -40,22 +41,26 @@ def test_the_residual_starts_as_the_base_bit_for_bit():
     rgb = torch.rand(len(points), 3)
     inside, raw = residual(points)
     assert inside.any() and (~inside).any()
-    assert torch.equal(residual.density(density, inside, raw), density)
-    assert torch.equal(residual.colour(rgb, inside, raw), rgb)
+    assert torch.equal(residual.density(density, inside, raw, ONE), density)
+    assert torch.equal(residual.colour(rgb, inside, raw, ONE), rgb)
     half = density.half()  # a field evaluated under autocast
-    assert torch.equal(residual.density(half, inside, raw), half)
+    assert torch.equal(residual.density(half, inside, raw, ONE), half)
 
 
 def test_outside_the_box_the_edit_is_the_base_however_the_residual_moved():
     residual, points = _moved(_residual()), _points()
     density, rgb = torch.rand(len(points), 1) * 50.0, torch.rand(len(points), 3)
     inside, raw = residual(points)
-    edited_density, edited_rgb = residual.density(density, inside, raw), residual.colour(rgb, inside, raw)
+    edited_density, edited_rgb = residual.density(density, inside, raw, ONE), residual.colour(rgb, inside, raw, ONE)
     outside = ~inside[:, 0]
     assert torch.equal(edited_density[outside], density[outside])
     assert torch.equal(edited_rgb[outside], rgb[outside])
     assert not torch.equal(edited_density[~outside], density[~outside]), "the residual moved inside the box"
-    # ... and no gradient reaches the residual from there.
+    # Where w = 1 (nothing editable) the moved residual changes nothing either.
+    held = torch.zeros(len(points), 1)
+    assert torch.equal(residual.density(density, inside, raw, held), density)
+    assert torch.equal(residual.colour(rgb, inside, raw, held), rgb)
+    # ... and no gradient reaches the residual from outside the box.
     loss = edited_density[outside].sum() + edited_rgb[outside].sum()
     gradients = torch.autograd.grad(loss, list(residual.parameters()), allow_unused=True)
     assert all(g is None or not g.any() for g in gradients)
@@ -66,7 +71,7 @@ def _fit(residual: LocalResidual, base: torch.Tensor, target: torch.Tensor, poin
                                   {"params": residual.head.parameters(), "lr": 5e-3}], betas=(0.9, 0.99), eps=1e-15)
     for _ in range(steps):
         inside, raw = residual(points)
-        density = residual.density(base, inside, raw)
+        density = residual.density(base, inside, raw, ONE)
         # L_pres-like squashed opacity at delta 0.07, as the edit's density losses see it
         opacity = -torch.expm1(-density * 0.07)
         loss = ((opacity - (-torch.expm1(-target * 0.07))) ** 2).mean()
@@ -75,7 +80,7 @@ def _fit(residual: LocalResidual, base: torch.Tensor, target: torch.Tensor, poin
         optimiser.step()
     with torch.no_grad():
         inside, raw = residual(points)
-        return residual.density(base, inside, raw)
+        return residual.density(base, inside, raw, ONE)
 
 
 def test_the_residual_adds_mass_in_empty_space_and_carves_what_the_base_holds():

@@ -62,6 +62,7 @@ def test_ngp_edit_starts_from_the_base_with_the_edit_box_switched_on(ngp_scene, 
 def test_no_cell_is_pruned_during_the_warmup(ngp_scene, tmp_path):
     config = edit_config(ngp_scene["base"], ngp_scene["data"], ngp_scene["sketches"], tmp_path, iterations=100)
     config.pipeline.model.keep_threshold = 1.0  # nothing held exactly: the grid follows the editable field everywhere
+    config.pipeline.model.nerf_edit_field = "full-copy"  # a field whose own weights the test sets
     resolve_edit(config)
     model: SkedNGPModel = config.pipeline.setup(device="cpu", test_mode="val").model
     model.train()

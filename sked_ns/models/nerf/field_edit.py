@@ -39,6 +39,7 @@ from sked_ns.method.options import (  # noqa: F401  (re-exported: their home was
 from sked_ns.method.photo_anchor import anchor_rays, correct_poses, rays_away_from_edit
 from sked_ns.models.nerf.chunked import chunked
 from sked_ns.models.nerf.colour_residual import ColourResidual
+from sked_ns.models.nerf.edited_base import is_local_edit
 from sked_ns.models.nerf.hash_grid import use_fast_hash_grids
 from sked_ns.models.nerf.held_field import held_field_outputs
 from sked_ns.models.nerf.local_edit import LocalEdit
@@ -94,6 +95,8 @@ class SkedMixin(LocalEdit, SkedEdit):
             raise ValueError("No base checkpoint: run `ns-train sked --load-dir <base run or its nerfstudio_models>`.")
         checkpoint = base_weights(self.config)
         state = read_model_state(checkpoint)
+        if is_local_edit(state):  # an earlier local edit (progressive): rebuilt from its run, the frozen base
+            return self._use_earlier_edit(state)
         ours = torch.nn.Module.state_dict(self)  # the whole model, the base's modules too
         if uses_tcnn(state) != uses_tcnn(ours):
             trained, here = ("tiny-cuda-nn", "torch") if uses_tcnn(state) else ("torch", "tiny-cuda-nn")
@@ -132,6 +135,8 @@ class SkedMixin(LocalEdit, SkedEdit):
         if self.local_field is not None:  # the base's modules are the base: no gradient, no optimiser, not saved
             for module in modules.values():
                 module.requires_grad_(False)
+        if self.__dict__.get("_earlier") is not None:
+            self.frozen_base = self._earlier_as_base(self.frozen_base)
         # Torch hash grids without a host copy per call, the edit's and the frozen base's (hash_grid.py).
         use_fast_hash_grids(self, *self.frozen_base.modules())
 
@@ -159,8 +164,8 @@ class SkedMixin(LocalEdit, SkedEdit):
         if getattr(self, "colour_residual", None) is not None:
             # Its linear layer starts at zero, so the grid gets no gradient until it moves: train it at the grids' rate.
             groups["hash_grids"] += list(self.colour_residual.linear.parameters())
-        if self.local_field is not None:
-            groups["fields"] = groups.get("fields", []) + list(self.local_field.head.parameters())
+        if self.local_field is not None:  # its head's last layer starts at zero too: the grids' rate (as above)
+            groups["hash_grids"] += list(self.local_field.head.parameters())
         return {name: params for name, params in groups.items() if params}  # a local edit trains no base module
 
     # ---- model-specific hooks ------------------------------------------------------------
@@ -221,9 +226,11 @@ class SkedMixin(LocalEdit, SkedEdit):
     # ---- kept content held exactly (held_field.py) --------------------------------------------
     def _kept(self, positions: Tensor) -> Optional[Tensor]:
         """Which points are kept exactly as the base (w above keep_threshold); None when nothing is held."""
-        if self.config.keep_threshold >= 1:
-            return None
-        return self.preservation_weight(positions)[..., 0] > self.config.keep_threshold
+        return self._held(self.preservation_weight(positions)) if self.config.keep_threshold < 1 else None
+
+    def _held(self, weight: Tensor) -> Optional[Tensor]:
+        """`_kept` from the points' preservation weights (..., 1)."""
+        return weight[..., 0] > self.config.keep_threshold if self.config.keep_threshold < 1 else None
 
     def _held_outputs(self, ray_samples: RaySamples, evaluate) -> Tuple[Dict, Dict]:
         """(edit's field outputs with kept samples the base's, base's field outputs); `evaluate(field, samples)`."""

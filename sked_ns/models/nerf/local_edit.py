@@ -6,6 +6,7 @@ found by its checkpoint's keys) `local_field` is None and the edit is a trainabl
 
 from __future__ import annotations
 
+import dataclasses
 from typing import Dict, List, Optional, Tuple
 
 import numpy as np
@@ -14,8 +15,11 @@ from nerfstudio.cameras.rays import RaySamples
 from nerfstudio.field_components.field_heads import FieldHeadNames
 from torch import Tensor
 
+from sked_ns.errors import SkedUserError
+from sked_ns.method.frozen_base import FrozenBase
 from sked_ns.method.photo_anchor import editable_box
 from sked_ns.models.nerf.colour_residual import ColourResidual
+from sked_ns.models.nerf.edited_base import EditedField, EditedProposal, earlier_edit
 from sked_ns.models.nerf.held_field import hold
 from sked_ns.models.nerf.local_field import FULL_COPY, LocalResidual, base_grid_extent, local_grid_shape
 
@@ -80,14 +84,16 @@ class LocalEdit:
             base = self.in_chunks(evaluate_base, self.base_field)(ray_samples)
         local, colour = self.local_field, self.config.colour_residual
 
-        def residual(points: Tensor, density: Tensor, rgb: Tensor) -> Dict[str, Tensor]:
+        def residual(points: Tensor, density: Tensor, rgb: Tensor, editable: Tensor) -> Dict[str, Tensor]:
             inside, raw = local(points)
-            return {FieldHeadNames.DENSITY: local.density(density, inside, raw),
-                    FieldHeadNames.RGB: local.colour(rgb, inside, raw) if colour else rgb}
+            return {FieldHeadNames.DENSITY: local.density(density, inside, raw, editable),
+                    FieldHeadNames.RGB: local.colour(rgb, inside, raw, editable) if colour else rgb}
 
         positions = ray_samples.frustums.get_positions()
-        edited = self.in_chunks(residual, local)(positions, base[FieldHeadNames.DENSITY], base[FieldHeadNames.RGB])
-        return hold({**base, **edited}, base, self._kept(positions)), base
+        weight = self.preservation_weight(positions)
+        edited = self.in_chunks(residual, local)(positions, base[FieldHeadNames.DENSITY], base[FieldHeadNames.RGB],
+                                                 (1.0 - weight).clamp(0.0, 1.0))
+        return hold({**base, **edited}, base, self._held(weight)), base
 
     def edit_density_fn(self, edit_fn, base_fn):
         """The edit's density for samplers and occupancy grids: the base's at kept points; elsewhere `edit_fn` (a
@@ -97,10 +103,39 @@ class LocalEdit:
         def density(positions: Tensor, times: Optional[Tensor] = None) -> Tensor:
             if self.local_field is None:
                 return held(positions, times)
-            with torch.no_grad():
-                base = base_fn(positions, times)
-                kept = self._kept(positions)
-                edited = self.local_field.density_at(base, positions)
-            return edited if kept is None else torch.where(kept[..., None], base, edited)
+            return self._local_density(base_fn, positions, times)
 
         return density
+
+    @torch.no_grad()
+    def _local_density(self, base_fn, positions: Tensor, times: Optional[Tensor] = None) -> Tensor:
+        base = base_fn(positions, times)
+        weight = self.preservation_weight(positions)
+        kept = self._held(weight)
+        edited = self.local_field.density_at(base, positions, (1.0 - weight).clamp(0.0, 1.0))
+        return edited if kept is None else torch.where(kept[..., None], base, edited)
+
+    def field_density(self, positions: Tensor, times: Optional[Tensor] = None) -> Tensor:
+        """This local edit's field density at positions, without gradient (the next edit's base density)."""
+        return self._local_density(self.base_field.density_fn, positions, times)
+
+    # ---- an earlier local edit as the base (edited_base.py) -------------------------------------
+    def _use_earlier_edit(self, state: Dict[str, Tensor]) -> None:
+        if self.local_field is None:
+            raise SkedUserError(
+                f"{self.config.base_checkpoint}: the base is an edit saved as its changes alone, from which no whole "
+                "field can be copied: edit it with --pipeline.model.nerf-edit-field local.")
+        earlier = earlier_edit(self.config.base_checkpoint, state, scene_box=self.scene_box,
+                               num_train_data=self.num_train_data, **self.kwargs)
+        self.__dict__["_earlier"] = earlier  # not a submodule: never trained or saved; the frozen base holds it
+        # What the earlier edit saved of the base's modules (instant-ngp: its occupancy grid), as it left them.
+        kept = {key: value for key, value in state.items() if key.startswith(self.BASE_PREFIXES)}
+        torch.nn.Module.load_state_dict(self, kept, strict=False)
+        self._base_cameras = earlier._base_cameras
+
+    def _earlier_as_base(self, frozen: FrozenBase) -> FrozenBase:
+        earlier = self.__dict__["_earlier"]
+        proposals = frozen.proposal_networks
+        if proposals is not None:
+            proposals = torch.nn.ModuleList([EditedProposal(earlier, i) for i in range(len(proposals))])
+        return dataclasses.replace(frozen, field=EditedField(earlier), proposal_networks=proposals)

@@ -5,13 +5,15 @@ trainable copy of the whole field (every hash level over the whole scene, the ML
 Adam's two moments for each) can change nothing there. The local edit trains only a small field over the box that
 bounds the points with w <= keep_threshold (the edit box padded as the preservation falloff reaches):
 
-    sigma_e(x) = max(0, sigma_o(x) m(x) + a(x)),   m = 2 sigmoid(d(x)),   a = s (exp(g(x)) - 1)
-    c_e(x)     = sigmoid(logit(c_o(x)) + r(x))
+    sigma_e(x) = max(0, sigma_o(x) (1 + e (m(x) - 1)) + e a(x)),   m = 2 sigmoid(d(x)),   a = s (exp(g(x)) - 1)
+    c_e(x)     = sigmoid(logit(c_o(x)) + e r(x)),                     e = 1 - w(x)
 
 with (d, g, r) a multiresolution hash grid in box coordinates and a small MLP whose last layer starts at zero, so
 m = 1, a = 0, r = 0: the edit starts as the base bit for bit. m carves (it takes the base's density to 0) and a adds
 mass in empty space, growing by a factor each step as nerfacto's own exp density does; s is a density per box
-diagonal. Outside the box every output is the base's (a `torch.where` on the in-box test, no data-dependent shape).
+diagonal. Scaled by 1 - w, the residual fades to nothing where the edit is held (w -> 1), so the edit meets the
+kept base without a seam and the band around the sketches changes only as far as it may. Outside the box every
+output is the base's (a `torch.where` on the in-box test, no data-dependent shape).
 Below 0 the clamp passes only gradients asking for more density, so emptied space can be filled again. The grid's resolution
 follows the box, not the scene (`local_grid_shape`); docs/method.md, Local edit, gives the rule and what it costs.
 """
@@ -93,23 +95,26 @@ class LocalResidual(torch.nn.Module):
         raw = self.head(self.encoding(unit.reshape(-1, 3)).float())
         return inside, raw.reshape(*positions.shape[:-1], OUTPUTS)
 
-    def density(self, base: Tensor, inside: Tensor, raw: Tensor) -> Tensor:
-        """max(0, sigma_o m + a) (`_FloorAtZero`); the base's density outside the box."""
+    def density(self, base: Tensor, inside: Tensor, raw: Tensor, editable: Tensor) -> Tensor:
+        """max(0, sigma_o m + a) (`_FloorAtZero`), each term scaled by `editable` = 1 - w; the base's density outside
+        the box."""
         sigma = base.float()
-        total = sigma * (2.0 * torch.sigmoid(raw[..., 0:1])) + self.density_scale * torch.expm1(raw[..., 1:2])
+        scale = 1.0 + editable * (2.0 * torch.sigmoid(raw[..., 0:1]) - 1.0)
+        total = sigma * scale + editable * (self.density_scale * torch.expm1(raw[..., 1:2]))
         return torch.where(inside, _FloorAtZero.apply(total), sigma).to(base.dtype)
 
-    def colour(self, base: Tensor, inside: Tensor, raw: Tensor) -> Tensor:
-        """The base's colour moved by r in logit space, added as a difference (r = 0 gives the base bit for bit)."""
+    def colour(self, base: Tensor, inside: Tensor, raw: Tensor, editable: Tensor) -> Tensor:
+        """The base's colour moved by (1 - w) r in logit space, added as a difference (r = 0 gives the base bit for
+        bit)."""
         rgb = base.float()
         logit = torch.logit(rgb.clamp(LOGIT_EPS, 1.0 - LOGIT_EPS))
-        moved = rgb + (torch.sigmoid(logit + raw[..., 2:5]) - torch.sigmoid(logit))
+        moved = rgb + (torch.sigmoid(logit + editable * raw[..., 2:5]) - torch.sigmoid(logit))
         return torch.where(inside, moved, rgb).to(base.dtype)
 
-    def density_at(self, base: Tensor, positions: Tensor) -> Tensor:
+    def density_at(self, base: Tensor, positions: Tensor, editable: Tensor) -> Tensor:
         """The edited density at positions given the base's there (samplers, occupancy grids)."""
         inside, raw = self(positions)
-        return self.density(base, inside, raw)
+        return self.density(base, inside, raw, editable)
 
     def extra_repr(self) -> str:
         return ", ".join(f"{key}={value}" for key, value in self.shape.items())

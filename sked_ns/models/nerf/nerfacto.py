@@ -75,7 +75,7 @@ class SkedNerfactoModel(SkedMixin, NerfactoModel):
                                              for network in self.frozen_base.proposal_networks]
         self._base_proposal_grids: Dict[int, BaseDensityGrid] = {}  # built on the device at the first step
         held = [self._base_proposal_grid_fn(i, fn) for i, fn in enumerate(base_fns)] \
-            if self.config.base_proposal_grid > 0 else base_fns
+            if self.config.base_proposal_grid > 0 and self.__dict__.get("_earlier") is None else base_fns
         self.density_fns = [self.edit_density_fn(fn, held[min(i, len(held) - 1)]) for i, fn in enumerate(self.density_fns)]
         self._boost_proposals_in_edit_box()
         self.density_fns = [self.in_chunks(fn, *self.proposal_networks) for fn in self.density_fns]
