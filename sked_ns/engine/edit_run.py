@@ -73,7 +73,8 @@ def run_edit(config: SkedTrainerConfig, trainer_class=None):
     config.set_timestamp()
     try:
         config.save_config()  # takes the run folder for this edit (ns-train holds it until the process ends)
-        trainer = (trainer_class or config._target)(config, local_rank=0, world_size=1)
+        trainer = config.setup(local_rank=0, world_size=1) if trainer_class is None else \
+            trainer_class(config, local_rank=0, world_size=1)
         trainer.setup()
         trainer.train()
     finally:

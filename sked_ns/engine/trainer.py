@@ -34,7 +34,7 @@ from sked_ns.engine.kept_base import STORE, keep_base, keep_sketches
 from sked_ns.engine.resume import preset_config, resumed_config, typed_settings
 from sked_ns.engine.run_home import HOME, WRITTEN_IN, config_file_being_read, home_run_folder, rehome
 from sked_ns.engine.safe_step import GuardedGradScaler, GuardedOptimizers, StepGuard, default_autocast_dtype
-from sked_ns.errors import SkedFileNotFoundError, SkedUserError, check_writable_folder
+from sked_ns.errors import SkedFileNotFoundError, SkedUserError, check_name_lengths, check_writable_folder
 from sked_ns.method.frozen_base import base_implementation
 from sked_ns.method.options import SkedOptions, copy_base_architecture
 from sked_ns.method.validation import check_options
@@ -235,6 +235,7 @@ def check_data(config: TrainerConfig, base: BaseScene) -> None:
     if data is None or Path(data) == Path():
         raise SkedUserError(f"no --data: an edit reads the base's images through the base's dataparser, typed after "
                             f"every other flag: {dataparser_command(base)} (from {base.run_dir / 'config.yml'}).")
+    check_name_lengths(Path(data), "--data")
     if Path(data).exists():
         return
     from sked_ns.engine.base_scene import run_data

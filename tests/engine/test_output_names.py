@@ -74,3 +74,14 @@ def test_sketches_with_a_name_too_long_are_refused_naming_the_flag(tmp_path, mon
 def test_an_unwritable_output_folder_with_a_name_too_long_says_the_name_not_the_permissions(tmp_path):
     with pytest.raises(SkedUserError, match=r"^--output-dir: the name 'a+\.\.\.' is 300 bytes long.*Pass a shorter"):
         check_writable_folder(tmp_path / LONG / "scene", "--output-dir", tmp_path / LONG)
+
+
+def test_data_with_a_name_too_long_is_refused_naming_the_flag(tmp_path):
+    from types import SimpleNamespace
+
+    from sked_ns.engine.trainer import check_data
+
+    config = _config(tmp_path)
+    config.data = tmp_path / LONG
+    with pytest.raises(SkedUserError, match=rf"^--data: the name '{'a' * 24}\.\.\.' is 300 bytes long"):
+        check_data(config, SimpleNamespace())
