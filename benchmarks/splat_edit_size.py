@@ -1,13 +1,14 @@
 """What a splat edit's checkpoint holds: the demo's edit of the demo's splatfacto base, as this version saves it
-(what the edit changed: its editable Gaussians, their L_pres targets and Adam state, and which of the base's
-Gaussians it keeps) against the layout earlier versions saved (the same and the kept Gaussians again).
+(what the edit changed: its editable Gaussians, their L_pres targets once refinement moved them, and which of the
+base's Gaussians it keeps; a finished edit saves no Adam moments) against the layout earlier versions saved (the
+same, the kept Gaussians again, every target, and Adam's moments).
 
     python benchmarks/splat_edit_size.py [--workdir DIR] [--output benchmarks/results/splat_edit_size.json]
 
 The base and the edit are sked-demo's with `--base splatfacto`: the demo sphere's photos fitted on the CPU, its
 sketches, reference guidance, 100 iterations at beta 0.025. The earlier layout is the same checkpoint written with the
-kept Gaussians and L_pres's targets under their keys (`kept.*`, `reference.*`) and without the kept rows: what the
-model saved before; both files are loaded back (the earlier one as an edit saved whole) and must render the
+kept Gaussians and L_pres's targets under their keys (`kept.*`, `reference.*`), without the kept rows and with the
+moments the optimisers held when the edit ended: what the model saved before; both files are loaded back (the earlier one as an edit saved whole) and must render the
 edit as trained, bit for bit. Prints a table of bytes per part and writes JSON.
 """
 
@@ -50,10 +51,11 @@ def stored_gaussians(checkpoint: Dict) -> int:
     return sum(len(pipeline[key]) for key in ("_model.kept.means", "_model.gauss_params.means") if key in pipeline)
 
 
-def whole_layout(checkpoint: Dict, model) -> Dict:
+def whole_layout(checkpoint: Dict, model, moments: Dict) -> Dict:
     """The checkpoint as earlier versions wrote it: the kept Gaussians and L_pres's targets saved with the edit, no
-    kept rows."""
+    kept rows, and Adam's moments as the optimisers held them when the edit ended."""
     earlier = copy.copy(checkpoint)
+    earlier["optimizers"] = moments
     pipeline = {key: value for key, value in checkpoint["pipeline"].items() if key != "_model.kept_in_base"}
     whole = {f"_model.{prefix}{name}": value.clone() for prefix, held in (("kept.", model.kept),
                                                                           ("reference.", model.reference))
@@ -84,6 +86,7 @@ def renders_as_trained(trained, run: Path, checkpoint_file: Path, camera) -> boo
 
 def measure(work: Path) -> Dict:
     from sked_ns.engine.edit_run import edit_config, run_edit
+    from sked_ns.engine.trainer import SkedTrainer
     from sked_ns.method.options import without_lpips
 
     harness.demo_scene(work, rewrite=False)
@@ -91,14 +94,26 @@ def measure(work: Path) -> Dict:
     config = edit_config(base / "nerfstudio_models", work / "data", work / "sketches", work / "edits",
                          iterations=ITERATIONS)
     config.pipeline.model.beta = BETA
-    with without_lpips():
-        trainer = run_edit(config)
+    moments: Dict = {}
+    finish = SkedTrainer._after_train
+
+    def after_train(trainer) -> None:  # Adam's moments as earlier versions saved them with the finished edit
+        moments.update(copy.deepcopy({name: optimizer.state_dict()
+                                      for name, optimizer in trainer.optimizers.optimizers.items()}))
+        finish(trainer)
+
+    SkedTrainer._after_train = after_train
+    try:
+        with without_lpips():
+            trainer = run_edit(config)
+    finally:
+        SkedTrainer._after_train = finish
     model = trainer.pipeline.model
     saved = sorted((trainer.base_dir / "nerfstudio_models").glob("step-*.ckpt"))[-1]
     checkpoint = torch.load(saved, map_location="cpu")
     earlier_file = work / "whole-layout" / saved.name
     earlier_file.parent.mkdir(exist_ok=True)
-    earlier = whole_layout(checkpoint, model)
+    earlier = whole_layout(checkpoint, model, moments)
     torch.save(earlier, earlier_file)
     camera = trainer.pipeline.datamanager.train_dataset.cameras[0:1]
     with without_lpips():
