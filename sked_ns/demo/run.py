@@ -283,23 +283,9 @@ def _settled_edit(output: Path, rerun: Rerun, base_run: Path, iterations: int, p
             config.pipeline.model.guidance.model = diffusion_model
     config.set_timestamp()
     record_runs(edits, settings, [*plan.chain, config.get_base_dir()])  # before it writes: Ctrl-C finds it
-    try:
-        run_dir = run_edit(config, DemoEditTrainer).base_dir
-    finally:
-        close_event_writers()
+    run_dir = run_edit(config, DemoEditTrainer).base_dir
     drop_replaced(edits, settings, run_dir, plan.chain)
     return run_dir, "new" if plan.run is None else f"continued from step {plan.step}"
-
-
-def close_event_writers() -> None:
-    """nerfstudio's event writers are the process's, and every later run logs to them all: one logging into a run
-    this demo removes would fail in the next edit this process runs."""
-    from nerfstudio.utils import writer
-
-    for event_writer in writer.EVENT_WRITERS:
-        if getattr(event_writer, "tb_writer", None) is not None:
-            event_writer.tb_writer.close()
-    writer.EVENT_WRITERS.clear()
 
 
 def _run(output: Path, rerun: Rerun, beta, size, iterations, base_steps, prompt, diffusion_model, device, base,

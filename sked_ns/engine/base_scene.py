@@ -276,8 +276,7 @@ def check_same_frame(base: BaseScene, here: DataparserTransform) -> None:
 def edited_base(model) -> BaseScene:
     """An edit's base: the config, data frame and checkpoint the edit reads, from its own copy of them
     (engine/kept_base.py) once it has one, so a base run moved, deleted or trained on since does not matter."""
-    from sked_ns.engine.kept_base import kept_config
-    from sked_ns.method.frozen_base import base_weights
+    from sked_ns.method.frozen_base import base_weights, kept_config
 
     checkpoint, weights = Path(model.base_checkpoint), base_weights(model)
     config = kept_config(weights) if weights != checkpoint else None

@@ -79,4 +79,16 @@ def run_edit(config: SkedTrainerConfig, trainer_class=None):
         trainer.train()
     finally:
         release(config.get_base_dir())  # this process goes on: the next edit (or a resume) may write there
+        close_event_writers()
     return trainer
+
+
+def close_event_writers() -> None:
+    """nerfstudio's event writers are the process's, and every later run logs to them all: one logging into a run
+    folder since moved or removed would fail in the next edit this process runs."""
+    from nerfstudio.utils import writer
+
+    for event_writer in writer.EVENT_WRITERS:
+        if getattr(event_writer, "tb_writer", None) is not None:
+            event_writer.tb_writer.close()
+    writer.EVENT_WRITERS.clear()

@@ -23,28 +23,20 @@ import os
 import shutil
 import tempfile
 from pathlib import Path
-from typing import Optional
 
 import torch
 
 from sked_ns.atomic import publish_atomically, write_atomically
+from sked_ns.engine.drawn_sketches import SESSION_SKETCHES
 from sked_ns.errors import SkedUserError
-from sked_ns.method.frozen_base import file_digest
+from sked_ns.method.frozen_base import KEPT_CONFIG, file_digest, kept_config
 
 KEPT = "base"
 """The folder in the edit's run that holds its copy of the base."""
-CONFIG = "base_config.yml"
-"""The base run's config.yml, as the kept folder holds it."""
 FRAME = "dataparser_transforms.json"
 """The base run's data frame (the name nerfstudio gives it)."""
 STORE = ".sked-bases"
 """The folder under an output folder holding one read-only copy of each base's weights its edits link to."""
-
-
-def kept_config(kept: Path) -> Optional[Path]:
-    """The base's config beside a kept checkpoint, or None (an edit of an older sked_ns kept the checkpoint alone)."""
-    path = Path(kept).parent / CONFIG
-    return path if path.exists() else None
 
 
 def keep_base(model, run_dir: Path, store: Path) -> None:
@@ -58,7 +50,7 @@ def keep_base(model, run_dir: Path, store: Path) -> None:
     if kept is not None and kept.parent == folder and kept.exists():
         return  # this run's own copy, made when it started
     base_run = Path(model.base_checkpoint).parent.parent
-    sources = {CONFIG: base_run / "config.yml", FRAME: base_run / FRAME}
+    sources = {KEPT_CONFIG: base_run / "config.yml", FRAME: base_run / FRAME}
     checkpoint = Path(model.base_checkpoint)
     if kept is not None and kept.exists():  # resumed into a new folder: the interrupted run's copy is the base
         checkpoint = kept
@@ -71,7 +63,8 @@ def keep_base(model, run_dir: Path, store: Path) -> None:
         for target, source in sources.items():
             if source.exists():
                 write_atomically(folder / target, lambda path, source=source: shutil.copyfile(source, path))
-        keep_chain((kept.parent if checkpoint == kept else base_run) / KEPT, folder / KEPT)
+        for name in (KEPT, SESSION_SKETCHES):  # a base that is an edit: what it reads of its own run goes along
+            keep_chain((kept.parent if checkpoint == kept else base_run) / name, folder / name)
         state = torch.load(checkpoint, map_location="cpu")
         weights = {"step": state.get("step", 0), "pipeline": state["pipeline"]}
         digest = link_from_store(weights, store, folder / checkpoint.name)
@@ -130,7 +123,6 @@ def link_from_store(weights: dict, store: Path, path: Path) -> str:
 def keep_sketches(model, run_dir: Path) -> None:
     """Save the sketch set the edit was given into `run_dir`'s `sketches/` and point the model config at it, so a
     sketch folder changed or removed afterwards changes nothing the edit renders."""
-    from sked_ns.engine.drawn_sketches import SESSION_SKETCHES
     from sked_ns.sketches.sketch_set import SKETCHES_JSON, load_sketch_set, save_sketch_set
 
     own = (Path(run_dir) / SESSION_SKETCHES).absolute()

@@ -43,6 +43,16 @@ class FrozenBase:
         return [getattr(self, f.name) for f in fields(self) if getattr(self, f.name) is not None]
 
 
+KEPT_CONFIG = "base_config.yml"
+"""The base run's config.yml, as an edit's copy of its base holds it beside the weights (engine/kept_base.py)."""
+
+
+def kept_config(kept: Path) -> Optional[Path]:
+    """The base's config beside a kept checkpoint, or None (an edit of an older sked_ns kept the checkpoint alone)."""
+    path = Path(kept).parent / KEPT_CONFIG
+    return path if path.exists() else None
+
+
 def base_weights(options) -> Path:
     """The checkpoint an edit's frozen base is read from: the edit's own copy (`base_kept`, engine/kept_base.py), so
     that no later write to the base run changes the edit, checked against its digest; the base run's before that

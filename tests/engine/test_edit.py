@@ -97,11 +97,15 @@ def test_edit_starts_bit_identical_with_fresh_optimisers(scene, tmp_path):
     assert torch.equal(render_at(pipeline.model, view, 16)["rgb"], render_at(base_pipeline.model, view, 16)["rgb"])
 
 
-def test_interrupted_edit_resumes_from_its_last_checkpoint(scene, tmp_path):
-    # A run that stops right after its step-20 checkpoint is an edit killed mid-way.
+def test_interrupted_edit_resumes_from_its_last_checkpoint(scene, tmp_path, monkeypatch):
+    # A run killed right after its step-20 checkpoint, before it finished (a finished one saves no Adam moments).
+    from sked_ns.engine.trainer import SkedTrainer
+
     first = edit_config(scene["base"], scene["data"], scene["sketches"], tmp_path / "first", iterations=21,
                         steps_per_save=10, guidance_resolution=16, silhouette_resolution=16)
-    interrupted = run_edit(first).base_dir
+    with monkeypatch.context() as killed:
+        killed.setattr(SkedTrainer, "_after_train", lambda self: None)
+        interrupted = run_edit(first).base_dir
     models = interrupted / "nerfstudio_models"
     assert [p.name for p in models.glob("*.ckpt")] == ["step-000000020.ckpt"]
     # A kill while saving (before checkpoints were written atomically) left a newer one cut short.

@@ -198,3 +198,19 @@ def test_a_finished_edit_saves_what_it_changed_not_adams_moments(finished_edit):
     state = torch.load(sorted((original / "nerfstudio_models").glob("step-*.ckpt"))[-1], map_location="cpu")
     assert state["optimizers"] and all(not optimizer["state"] and optimizer["param_groups"]
                                        for optimizer in state["optimizers"].values())
+
+
+def test_an_edit_of_an_edit_opens_with_the_earlier_edit_and_its_base_deleted(scene, tmp_path):
+    base = tmp_path / "base-run"
+    shutil.copytree(scene["base"], base)
+    first = _tiny_edit(scene, base, tmp_path / "first")
+    config = edit_config(first, scene["data"], scene["sketches"], tmp_path / "second", iterations=2, steps_per_save=1,
+                         guidance_resolution=16, silhouette_resolution=16)
+    config.progressive = True
+    second = run_edit(config).base_dir
+    view = load_sketch_set(scene["sketches"]).views[0]
+    before = _render(second, view)
+    shutil.rmtree(tmp_path / "first")
+    shutil.rmtree(base)
+    assert torch.equal(_render(second, view), before)
+    assert (second / "base" / "sketches").is_dir() and (second / "base" / "base").is_dir()

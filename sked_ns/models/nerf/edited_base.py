@@ -16,6 +16,7 @@ import yaml
 from torch import Tensor
 
 from sked_ns.errors import SkedFileNotFoundError
+from sked_ns.method.frozen_base import kept_config
 
 
 def is_local_edit(state: Dict[str, Tensor]) -> bool:
@@ -24,8 +25,10 @@ def is_local_edit(state: Dict[str, Tensor]) -> bool:
 
 
 def earlier_edit(checkpoint: Path, state: Dict[str, Tensor], **model_kwargs) -> torch.nn.Module:
-    """The local edit saved as `state`, from the run `checkpoint` (its step-*.ckpt) belongs to, frozen."""
-    config_path = Path(checkpoint).parent.parent / "config.yml"
+    """The local edit saved as `state`, from `checkpoint` (the next edit's copy of its step-*.ckpt, or the run's own
+    file), frozen."""
+    # The edit's own copy of its base holds that run's config beside its weights; before it, the run's own.
+    config_path = kept_config(checkpoint) or Path(checkpoint).parent.parent / "config.yml"
     if not config_path.exists():
         raise SkedFileNotFoundError(f"{config_path}: the base is an edit saved as its changes alone, which its run's "
                                     "config.yml rebuilds; put the edit's run folder back where it was.")

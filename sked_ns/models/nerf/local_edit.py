@@ -16,7 +16,7 @@ from nerfstudio.field_components.field_heads import FieldHeadNames
 from torch import Tensor
 
 from sked_ns.errors import SkedUserError
-from sked_ns.method.frozen_base import FrozenBase
+from sked_ns.method.frozen_base import FrozenBase, base_weights
 from sked_ns.method.photo_anchor import editable_box
 from sked_ns.models.nerf.colour_residual import ColourResidual
 from sked_ns.models.nerf.edited_base import EditedField, EditedProposal, earlier_edit
@@ -125,7 +125,7 @@ class LocalEdit:
             raise SkedUserError(
                 f"{self.config.base_checkpoint}: the base is an edit saved as its changes alone, from which no whole "
                 "field can be copied: edit it with --pipeline.model.nerf-edit-field local.")
-        earlier = earlier_edit(self.config.base_checkpoint, state, scene_box=self.scene_box,
+        earlier = earlier_edit(base_weights(self.config), state, scene_box=self.scene_box,
                                num_train_data=self.num_train_data, **self.kwargs)
         self.__dict__["_earlier"] = earlier  # not a submodule: never trained or saved; the frozen base holds it
         # What the earlier edit saved of the base's modules (instant-ngp: its occupancy grid), as it left them.
