@@ -41,7 +41,7 @@ def hull_bulk(edit_run: Path, scene: str, sketches: Path, samples: int = 64, mar
 @torch.no_grad()
 def model_bulk(model, transform, part_sdf, views, samples: int = 64, margin: float = MARGIN,
                png: Optional[Path] = None) -> Dict[str, float]:
-    """The figures of an edit model (a NeRF field's, with `field` and `base_field`): `transform` maps the data
+    """The figures of a NeRF edit model (a local residual or a whole-field copy, with `base_field`): `transform` maps the data
     frame, where `part_sdf` (the added part's signed distance) and the sketch `views` live, to the model's."""
     from sked_ns.method.edit_box import compute_edit_box
     from sked_ns.method.preservation import SketchDistanceField
@@ -56,11 +56,13 @@ def model_bulk(model, transform, part_sdf, views, samples: int = 64, margin: flo
     model_points = transform.points_to_model(points)
     delta = model.config.preservation_delta
 
-    def alpha(field) -> torch.Tensor:
-        densities = torch.cat([field.density_fn(chunk)[..., 0] for chunk in model_points.split(1 << 15)])
+    def alpha(density_fn) -> torch.Tensor:
+        densities = torch.cat([density_fn(chunk)[..., 0] for chunk in model_points.split(1 << 15)])
         return 1.0 - torch.exp(-densities.clamp_min(0) * delta)
 
-    new = (alpha(model.field) - alpha(model.base_field)).clamp_min(0)
+    # A local edit's density is its base's moved by its residual; a whole-field copy's is its own field's.
+    edited = model.field_density if getattr(model, "local_field", None) is not None else model.field.density_fn
+    new = (alpha(edited) - alpha(model.base_field.density_fn)).clamp_min(0)
     part, bulk = inside & (distance < 0), inside & (distance > margin)
     result = {"hull_points": int(inside.sum()), "part_points": int(part.sum()), "bulk_points": int(bulk.sum()),
               "part": float(new[part].mean()) if part.any() else float("nan"),

@@ -9,6 +9,7 @@ on nerfacto, proposal densities. What it renders is the earlier edit's render, k
 from __future__ import annotations
 
 from pathlib import Path
+from types import SimpleNamespace
 from typing import Dict, Optional
 
 import torch
@@ -35,6 +36,11 @@ def earlier_edit(checkpoint: Path, state: Dict[str, Tensor], **model_kwargs) -> 
     config = yaml.load(config_path.read_text(), Loader=yaml.Loader)
     model = config.pipeline.model.setup(**model_kwargs)
     model.load_state_dict(state)
+    from nerfstudio.viewer.viewer_elements import ViewerElement
+
+    for name, value in list(vars(model).items()):  # the viewer's controls are the new edit's, not its base's
+        if isinstance(value, ViewerElement):
+            setattr(model, name, SimpleNamespace(value=value.value))
     return model.eval().requires_grad_(False)
 
 
