@@ -23,6 +23,7 @@ import warnings
 from pathlib import Path
 from typing import Sequence
 
+import harness
 import numpy as np
 import torch
 
@@ -106,13 +107,12 @@ def main(argv=None) -> None:
         save_sketch_set(hat_sketches(arguments.data, arguments.views), arguments.out)
         print(f"sketches of the hat region from {', '.join(arguments.views)} in {arguments.out}")
     else:
+        if arguments.output is not None:
+            harness.claim("capture_fox.py", arguments.output)
         report = {"data": str(arguments.data), "sketches": str(arguments.sketches),
                   "views": [view.name for view in load_sketch_set(arguments.sketches).views],
                   "scene_box": [[-1.0] * 3, [1.0] * 3], **check(arguments.data, arguments.sketches)}
-        text = json.dumps(report, indent=2)
-        print(text)
-        if arguments.output:
-            arguments.output.write_text(text + "\n")
+        harness.publish(report, arguments.output)
 
 
 if __name__ == "__main__":

@@ -84,6 +84,15 @@ def write_results(path: Path, data) -> None:
     write_text_atomically(path, json.dumps(data, indent=2, default=str))
 
 
+def publish(result: Dict, output: Optional[Path], device: str = "cpu") -> None:
+    """A JSON result printed and, given `output` (claimed before measuring), written whole there, with the environment
+    it was measured in: for scripts whose figures are a record, not a table."""
+    result = {**result, "environment": environment(device)}
+    print(json.dumps(result, indent=2, default=str))
+    if output is not None:
+        write_results(output, result)
+
+
 def report(table: str, *written: Path) -> None:
     """A benchmark's last words: its table and the files it wrote."""
     print(table)
