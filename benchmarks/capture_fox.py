@@ -2,6 +2,7 @@
 
     python benchmarks/capture_fox.py sketches DATA OUT [--views 0001 0025]   # a hat region on the fox's head
     python benchmarks/capture_fox.py check DATA SKETCHES                     # placement and edit box, both frames
+    python benchmarks/capture_fox.py edit DATA SKETCHES BASE OUT [--iterations 100] [--output results.json]
 
 DATA is the dataset `benchmarks/capture_prep.py` wrote. A sketch view stands where a photo was taken (its
 camera, as a user snaps the viewer to a training camera before sketching), and its mask is the silhouette of a
@@ -12,13 +13,22 @@ pinhole silhouettes of the ball on the photo's camera without its lens, as the v
 `check` reads the set as an edit does (the data frame mapped by nerfstudio-data with each --center-method) and
 prints what the placement checks and the edit box say: the warnings the set gives, whether the box holds the
 ball, and where the point the cameras look at (the fox) lands in nerfstudio's frame.
+
+`edit` runs `ns-train sked` of BASE towards the composite target (a cone in the edit box,
+`pipeline.model.guidance:reference --pipeline.model.guidance.primitive cone`) at a CPU's protocol (RESOLUTION px
+guidance and silhouette renders, SAMPLES_PER_RAY_SCALE of the base's samples), in this process as `ns-train` runs
+it, timing each step and the process's peak resident memory while the steps run; with --output it then measures
+the edit (`capture_measure.py`: held-out photos, the sketch views, and a strip of pictures beside the results).
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
+import resource
 import sys
+import time
 import warnings
 from pathlib import Path
 from typing import Sequence
@@ -33,6 +43,10 @@ from sked_ns.sketches.sketch_set import SketchSet, SketchView, load_sketch_set, 
 
 HAT = ((0.68, -0.855, 1.45), 0.35)
 """(centre, radius) of the hat region in the fox's data frame: over the forehead, between the ears."""
+RESOLUTION = 24
+"""Guidance and silhouette render side, px: edit_quality.py's CPU protocols."""
+SAMPLES_PER_RAY_SCALE = 0.25
+"""A NeRF base's samples per ray in the edit's renders, as edit_quality.py's CPU protocols."""
 VIEWS = ("0001", "0025")
 """Two photos about 55 degrees apart along the arc: the fox's left side and its front."""
 
@@ -91,6 +105,63 @@ def check(data: Path, sketches: Path) -> dict:
     return report
 
 
+def edit_arguments(data: Path, sketches: Path, base: Path, out: Path, iterations: int) -> list:
+    """`ns-train sked ...` as a user types it for a measured edit of a capture on a CPU (docs/captures.md)."""
+    dataparser = ["--center-method", "focus"] if "center_method: focus" in (base / "config.yml").read_text() else []
+    return ["sked", "--load-dir", str(base), "--sketches", str(sketches), "--output-dir", str(out),
+            "--experiment-name", "fox", "--max-num-iterations", str(iterations), "--steps-per-save", str(iterations),
+            "--vis", "tensorboard", "--machine.device-type", "cpu",
+            "--pipeline.model.guidance-resolution", str(RESOLUTION),
+            "--pipeline.model.silhouette-resolution", str(RESOLUTION),
+            "--pipeline.model.samples-per-ray-scale", str(SAMPLES_PER_RAY_SCALE),
+            "--pipeline.model.edit-box-warmup", str(max(1, iterations // 10)),
+            # Random views where the photos were, relative to the first sketch view: the capture is an arc.
+            "--pipeline.datamanager.azimuth-range", "-60", "60",
+            "--pipeline.datamanager.elevation-range", "-10", "45",
+            "pipeline.model.guidance:reference", "--pipeline.model.guidance.primitive", "cone",
+            "nerfstudio-data", *dataparser, "--data", str(data)]
+
+
+def _rss_peak_gb() -> float:
+    for line in Path("/proc/self/status").read_text().splitlines():
+        if line.startswith("VmHWM:"):
+            return int(line.split()[1]) / 2**20
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20
+
+
+def run_edit(arguments: list) -> dict:
+    """`ns-train ARGUMENTS` in this process; each step's wall time and the peak RSS from the first step on."""
+    from nerfstudio.scripts.train import entrypoint
+
+    from sked_ns.engine.trainer import SkedTrainer
+    from sked_ns.method.options import without_lpips
+
+    times, plain = [], SkedTrainer.train_iteration
+    before = {}
+
+    def timed(trainer, step):
+        if not times and "rss" not in before:
+            before["rss"] = _rss_peak_gb()
+            with contextlib.suppress(OSError):  # Linux: the peak counts again from here
+                Path("/proc/self/clear_refs").write_text("5")
+        start = time.perf_counter()
+        result = plain(trainer, step)
+        times.append(time.perf_counter() - start)
+        return result
+
+    SkedTrainer.train_iteration = timed
+    argv, sys.argv = sys.argv, ["ns-train", *arguments]
+    try:
+        with without_lpips():
+            entrypoint()
+    finally:
+        SkedTrainer.train_iteration, sys.argv = plain, argv
+    settled = sorted(times[1:]) or times
+    return {"steps": len(times), "first_step_s": times[0], "median_step_s": settled[len(settled) // 2],
+            "mean_step_s": sum(settled) / len(settled), "peak_rss_gb_set_up": before.get("rss"),
+            "peak_rss_gb_steps": _rss_peak_gb()}
+
+
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     commands = parser.add_subparsers(dest="command", required=True)
@@ -102,8 +173,28 @@ def main(argv=None) -> None:
     test.add_argument("data", type=Path)
     test.add_argument("sketches", type=Path)
     test.add_argument("--output", type=Path, help="also write the report here (JSON)")
+    edit = commands.add_parser("edit")
+    for name in ("data", "sketches", "base", "out"):
+        edit.add_argument(name, type=Path)
+    edit.add_argument("--iterations", type=int, default=100)
+    edit.add_argument("--output", type=Path, help="measure the edit and write the results here (JSON)")
+    edit.add_argument("--strip", type=int, default=3, help="held-out photos in the picture strip beside --output")
     arguments = parser.parse_args(argv)
-    if arguments.command == "sketches":
+    if arguments.command == "edit":
+        if arguments.output is not None:
+            harness.claim("capture_fox.py", arguments.output)
+        command = edit_arguments(arguments.data, arguments.sketches, arguments.base, arguments.out, arguments.iterations)
+        timing = run_edit(command)
+        run = max((arguments.out / "fox" / "sked").iterdir())
+        result = {"command": "ns-train " + " ".join(command), "run": str(run), "iterations": arguments.iterations,
+                  "resolution": RESOLUTION, "samples_per_ray_scale": SAMPLES_PER_RAY_SCALE, "timing": timing}
+        if arguments.output is not None:
+            from capture_measure import measure
+
+            with torch.no_grad():
+                result.update(measure(run, strip=arguments.output.with_suffix(".png"), strip_photos=arguments.strip))
+        harness.publish(result, arguments.output)
+    elif arguments.command == "sketches":
         save_sketch_set(hat_sketches(arguments.data, arguments.views), arguments.out)
         print(f"sketches of the hat region from {', '.join(arguments.views)} in {arguments.out}")
     else:

@@ -8,8 +8,15 @@ docs/captures.md). At every photo nerfstudio held out for evaluation (its own sp
 - kept content: PSNR and SSIM of the frozen base and of the edit against the photo outside the primitive's
   silhouette, and their difference (a base-photo gap is the base's, not the edit's); and the edit against its base
   there (what the edit moved);
+- what the edit must not do there: `leak` (sked-eval's: new opacity outside the silhouette; a capture's wall
+  makes every pixel opaque already, so also `changed_outside_share`: the share of pixels outside the silhouette
+  whose colour moved by over CHANGED);
 - the changed region: the pixels where the edit differs from its base by over CHANGED against the composite's
   changed pixels (intersection over union), and the edit's PSNR against the composite inside the silhouette.
+
+At the sketch views (SKETCH_RESOLUTION px, as sked-eval): IoS of the edit and its base (any opacity, so the wall
+behind a sketch fills it before any edit) and region IoS (opacity of content near the sketches only).
+With --strip, a PNG of photo | base | edit | |edit - base| x DIFFERENCE_GAIN at the first held-out photos.
 """
 
 from __future__ import annotations
@@ -17,16 +24,49 @@ from __future__ import annotations
 import argparse
 import sys
 from pathlib import Path
+from typing import Optional
 
 import harness
 import torch
 
 CHANGED = 0.1
 """A pixel the edit changed: its colour moved by over this (of 1) in some channel from the base's."""
+SKETCH_RESOLUTION = 64
+"""The sketch views' render side for IoS, px (sked-eval's benchmark setting)."""
+DIFFERENCE_GAIN = 4
+"""The strip's difference column: |edit - base| times this, so a small change shows."""
 
 
-def measure(edit: Path, photos: int = 0) -> dict:
-    """The figures at the first `photos` held-out photos (0: all)."""
+def sketch_views(model) -> dict:
+    """IoS and region IoS of the edit and its frozen base at each sketch view."""
+    from sked_ns.evaluation.metrics import intersection_over_sketch
+    from sked_ns.evaluation.render import render_at, render_base_at, resized_mask
+
+    rows = []
+    for view in model.sketch_set.views:
+        edited, base = render_at(model, view, SKETCH_RESOLUTION), render_base_at(model, view, SKETCH_RESOLUTION)
+        mask = resized_mask(view, SKETCH_RESOLUTION)
+        row = {"view": view.name, "ios": intersection_over_sketch(edited["accumulation"], mask),
+               "ios_base": intersection_over_sketch(base["accumulation"], mask)}
+        if "preservation_weight" in edited:
+            row["ios_region"] = intersection_over_sketch(1.0 - edited["preservation_weight"], mask)
+            row["ios_region_base"] = intersection_over_sketch(1.0 - base["preservation_weight"], mask)
+        rows.append(row)
+    return {"views": rows, "mean": {key: sum(row[key] for row in rows) / len(rows) for key in rows[0] if key != "view"}}
+
+
+def save_strip(tiles: list, path: Path) -> None:
+    """Rows of (photo, base, edit, edit - base) tiles, one row a photo, as one PNG."""
+    from PIL import Image
+
+    rows = [torch.cat([photo, base, edited, ((edited - base).abs() * DIFFERENCE_GAIN).clamp(0, 1)], dim=1)
+            for photo, base, edited in tiles]
+    Image.fromarray((torch.cat(rows, dim=0).clamp(0, 1) * 255).round().byte().numpy()).save(path)
+
+
+def measure(edit: Path, photos: int = 0, strip: Optional[Path] = None, strip_photos: int = 3) -> dict:
+    """The figures at the first `photos` held-out photos (0: all) and at the sketch views; `strip`: where the
+    pictures of the first `strip_photos` go."""
     from sked_ns.demo.composite_target import Primitive, composite_target
     from sked_ns.evaluation.metrics import psnr_inside, psnr_outside, ssim_outside
     from sked_ns.evaluation.render import load_pipeline, render_camera
@@ -38,16 +78,21 @@ def measure(edit: Path, photos: int = 0) -> dict:
         raise SystemExit(f"error: {edit}: not an edit towards the composite target (--pipeline.model.guidance.primitive)")
     primitive = Primitive.in_edit_box(guidance.primitive, guidance.primitive_colour, guidance.primitive_centre,
                                       guidance.primitive_size, model.edit_box)
-    rows = []
+    rows, tiles = [], []
     for index in range(len(dataset) if photos <= 0 else min(photos, len(dataset))):
         camera = dataset.cameras[index:index + 1]
         photo = dataset.get_image_float32(index)[..., :3]
-        base, edited = (render_camera(model, camera, base=flag)["rgb"] for flag in (True, False))
+        renders = {flag: render_camera(model, camera, base=flag) for flag in (True, False)}
+        base, edited = renders[True]["rgb"], renders[False]["rgb"]
         target = composite_target(model, primitive, camera)
         silhouette = target["silhouette"].cpu().float()
         changed = (edited - base).abs().amax(dim=-1) > CHANGED
         expected = target["changed"].cpu()
         union = (changed | expected).sum()
+        outside = ~silhouette.bool()
+        accumulation = {flag: render["accumulation"] for flag, render in renders.items()}
+        if strip is not None and len(tiles) < strip_photos:
+            tiles.append((photo, base, edited))
         rows.append({
             "photo": dataset.image_filenames[index].name,
             "base_psnr_photo": psnr_outside(base, photo, silhouette),
@@ -55,6 +100,8 @@ def measure(edit: Path, photos: int = 0) -> dict:
             "base_ssim_photo": ssim_outside(base, photo, silhouette),
             "edit_ssim_photo": ssim_outside(edited, photo, silhouette),
             "edit_psnr_base": psnr_outside(edited, base, silhouette),
+            "leak": float((accumulation[False] - accumulation[True]).clamp_min(0)[outside].mean()),
+            "changed_outside_share": float((changed & outside).sum() / outside.sum()),
             "composite_changed_pixels": int(expected.sum()),
             "edit_changed_pixels": int(changed.sum()),
             "changed_iou": float((changed & expected).sum() / union) if union else None,
@@ -65,7 +112,10 @@ def measure(edit: Path, photos: int = 0) -> dict:
         row["kept_difference_db"] = row["edit_psnr_photo"] - row["base_psnr_photo"]
     mean = {key: sum(row[key] for row in rows) / len(rows) for key in rows[0]
             if all(isinstance(row[key], (int, float)) for row in rows)}
-    return {"edit": str(edit), "changed_threshold": CHANGED, "photos": rows, "mean": mean}
+    if tiles:
+        save_strip(tiles, strip)
+    return {"edit": str(edit), "changed_threshold": CHANGED, "photos": rows, "mean": mean,
+            "sketch_views": sketch_views(model), **({"strip": str(strip)} if tiles else {})}
 
 
 def main(argv=None) -> None:
@@ -73,11 +123,12 @@ def main(argv=None) -> None:
     parser.add_argument("edit", type=Path)
     parser.add_argument("--output", type=Path)
     parser.add_argument("--photos", type=int, default=0, help="measure at the first N held-out photos (0: all)")
+    parser.add_argument("--strip", type=Path, help="a PNG of photo | base | edit | difference at three held-out photos")
     arguments = parser.parse_args(argv)
     if arguments.output is not None:  # the one writer of the results file, before the minutes of measuring
         harness.claim("capture_measure.py", arguments.output)
     with torch.no_grad():
-        result = measure(arguments.edit, arguments.photos)
+        result = measure(arguments.edit, arguments.photos, arguments.strip)
     harness.publish(result, arguments.output)
 
 
