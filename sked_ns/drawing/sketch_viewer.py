@@ -36,6 +36,7 @@ from sked_ns.drawing.sketching import (
 )
 from sked_ns.engine.viewer import add_frustum, frame_on_connect, show_sketch_views, step_back, training_poses
 from sked_ns.errors import ArgumentParser, SkedFileExistsError, SkedUserError, reading
+from sked_ns.method.edit_box import content_bounds
 from sked_ns.progress import Heartbeat
 from sked_ns.sketches.sketch_set import SKETCHES_JSON, DataparserTransform
 
@@ -302,7 +303,8 @@ def start_viewer(run: Path, out: Path, port: Optional[int] = None, device: str =
     viewer.update_scene(step=0)
     frame_on_connect(viewer.viser_server, training_poses(pipeline))
     preview_width = CPU_PREVIEW_WIDTH if device == "cpu" else None
-    session = SketchSession(renderer(pipeline, lock, preview_width), transform, pipeline.model.scene_box.aabb.numpy())
+    bounds = content_bounds(pipeline.model.config, pipeline.model.scene_box.aabb.numpy())
+    session = SketchSession(renderer(pipeline, lock, preview_width), transform, *bounds)
     return viewer, SketchPanel(viewer.viser_server, session, out)
 
 

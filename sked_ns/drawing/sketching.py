@@ -68,10 +68,10 @@ class SketchSession:
     """Sketch views being drawn over a base scene."""
 
     def __init__(self, render: Callable[[PinholeCamera], np.ndarray], transform: DataparserTransform,
-                 scene_box: Optional[np.ndarray] = None) -> None:
+                 scene_box: Optional[np.ndarray] = None, bounded: bool = True) -> None:
         self.render = render
         self.transform = transform
-        self.scene_box = scene_box
+        self.scene_box, self.bounded = scene_box, bounded  # the base's (edit_box.content_bounds)
         self.views: List[SketchView] = []
         self.canvases: List[np.ndarray] = []  # the render each view was drawn on, for the viewer
         self.pending: Optional[PendingView] = None
@@ -169,7 +169,7 @@ class SketchSession:
     # ---- the set --------------------------------------------------------------------------
     def edit_box(self) -> Optional[EditBox]:
         """Where the sketches meet in 3D (model frame); None with fewer than two views."""
-        return compute_edit_box(self.views, scene_box=self.scene_box) if len(self.views) >= 2 else None
+        return compute_edit_box(self.views, self.scene_box, self.bounded) if len(self.views) >= 2 else None
 
     def hull_check(self) -> Optional[HullCheck]:
         """Do the views pin the part down (`sked_ns.drawing.hull_check`)? None with fewer than two views."""

@@ -144,10 +144,11 @@ def check_devices(machine) -> None:
 
 def check_sketches_in_data(config, with_sketches: bool = True) -> None:
     """The data as its dataparser reads it, and the sketch set in the frame it gives: placed as the model places it
-    (model_frame_sketches) and boxed inside its scene box (compute_edit_box), and the base trained in that frame."""
+    (model_frame_sketches) and boxed in the space the base holds (compute_edit_box, content_bounds), and the base
+    trained in that frame."""
     from sked_ns.engine.base_scene import check_same_frame, dataparser_name, edited_base
     from sked_ns.engine.datamanager import outputs_transform, sketch_frame_metadata
-    from sked_ns.method.edit_box import compute_edit_box
+    from sked_ns.method.edit_box import compute_edit_box, content_bounds
     from sked_ns.method.frozen_base import check_photo_count, read_model_state
     from sked_ns.sketches.data_frame import model_frame_sketches
 
@@ -174,7 +175,7 @@ def check_sketches_in_data(config, with_sketches: bool = True) -> None:
     if not with_sketches:
         return
     sketch_set = model_frame_sketches(model.sketches, metadata)
-    compute_edit_box(sketch_set.views, scene_box=outputs.scene_box.aabb.numpy())
+    compute_edit_box(sketch_set.views, *content_bounds(model, outputs.scene_box.aabb.numpy()))
 
 
 def _first_non_finite(value, path: str):

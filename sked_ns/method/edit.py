@@ -38,19 +38,19 @@ from torch import Tensor
 
 from sked_ns.errors import warn
 from sked_ns.guidance import Guidance, RenderedView
-from sked_ns.method.edit_box import EditBox, compute_edit_box, in_box
+from sked_ns.method.edit_box import EditBox, compute_edit_box, content_bounds, in_box
 from sked_ns.method.frozen_base import FrozenBase
 from sked_ns.method.losses import silhouette_loss, sparsity_loss
 from sked_ns.method.options import SkedOptions, warn_degenerate_settings
-from sked_ns.method.photo_anchor import check_base_explains_photos, editable_box
+from sked_ns.method.photo_anchor import check_base_explains_photos, editable_box, search_box
 from sked_ns.method.preservation import SketchDistanceField, check_beta
-from sked_ns.method.validation import check_sketch_pixels
 from sked_ns.sketches.data_frame import model_frame_sketches
 
 TINT = (1.0, 0.2, 0.2)
-SKETCH_REACH = 0.5
-"""How far around the edit box, as a share of its size, the base's content is looked for (warn_if_off_base)."""
 """The viewer's tint where the edit may act."""
+SKETCH_REACH = 0.5
+"""How far around the edit box, as a share of its size, the base's content (warn_if_off_base) and the editable region
+past the scene box (editable_search_box) are looked for."""
 
 
 @dataclasses.dataclass
@@ -90,7 +90,9 @@ class SkedEdit:
         """Call after the parent's populate_modules: the sketch set in the model's frame and what follows from it."""
         self.lpips = None
         self.sketch_set = sketch_set = model_frame_sketches(self.config.sketches, self.kwargs.get("metadata") or {})
-        self.edit_box: EditBox = compute_edit_box(sketch_set.views, scene_box=self.scene_box.aabb.numpy())
+        # Quiet: the edit's inputs were checked and warned of before anything was written (engine/edit_inputs.py).
+        self.content_box, self.content_bounded = content_bounds(self.config, self.scene_box.aabb.numpy())
+        self.edit_box: EditBox = compute_edit_box(sketch_set.views, self.content_box, self.content_bounded, quiet=True)
         # The box as a device buffer (moved with the model, never saved): a host-built tensor per call would be a sync.
         self.register_buffer("edit_box_bounds", torch.as_tensor(np.stack([self.edit_box.min, self.edit_box.max]),
                                                                 dtype=torch.float32), persistent=False)
@@ -98,7 +100,6 @@ class SkedEdit:
             sketch_set.views, compile=self.config.compile_lookup and torch.cuda.is_available()
         )
         warn_degenerate_settings(self.config, sketch_set)
-        check_sketch_pixels(sketch_set, self.config.silhouette_resolution)
         self.guidance: Optional[Guidance] = None  # plain attribute: never in a checkpoint
         self._add_viewer_controls()
 
@@ -265,11 +266,17 @@ class SkedEdit:
     base_photo_psnr: Optional[float] = None
     """The base's PSNR at the first batch of anchored photo pixels (check_base_explains_photos)."""
 
+    def editable_search_box(self) -> Tensor:
+        """(2, 3) where the editable region is looked for: the scene box, and the edit box with SKETCH_REACH of its
+        size each side where it reaches past it (within the space the base holds)."""
+        return search_box(self.scene_box.aabb, self.edit_box.min, self.edit_box.max, SKETCH_REACH,
+                          self.content_box if self.content_bounded else None)
+
     def editable_box(self) -> Optional[Tensor]:
         """The box holding every point with w <= photo_threshold (follows beta, which the viewer may change)."""
         key = (self.config.beta, self.config.photo_threshold)
         if getattr(self, "_editable_box_key", None) != key:
-            self._editable_box = editable_box(lambda p: self.preservation_weight(p)[..., 0], self.scene_box.aabb,
+            self._editable_box = editable_box(lambda p: self.preservation_weight(p)[..., 0], self.editable_search_box(),
                                               self.config.photo_threshold)
             self._editable_box_key = key
         return self._editable_box

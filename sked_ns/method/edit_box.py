@@ -4,11 +4,15 @@ Each view's mask bounding box (all contours, not only the first as in the author
 spans a frustum; the edit box is the world axis-aligned box around the intersection of
 all frusta, found exactly with six linear programmes. It seeds the occupancy grid of
 instant-ngp bases and aims the random training cameras.
+
+A base holds content past its scene box when its field contracts space (nerfacto's and instant-ngp's default
+scene contraction) or it has no box (splats): there the edit box is not clipped to the scene box, which a capture's
+object may straddle. A bounded base (no contraction) holds nothing past it: the box is clipped, and a clip that cuts
+the sketched region is warned.
 """
 
 from __future__ import annotations
 
-import warnings
 from dataclasses import dataclass
 from itertools import combinations
 from typing import Optional, Sequence
@@ -18,7 +22,7 @@ import torch
 from scipy.optimize import linprog
 from torch import Tensor
 
-from sked_ns.errors import SkedUserError
+from sked_ns.errors import SkedUserError, warn
 from sked_ns.sketches.placement import (
     check_camera_placement,
     frusta_meet,
@@ -35,6 +39,8 @@ MIN_BASELINE_DEG = 5.0
 """Views all closer than this cannot bound the sketched region's depth: the box runs out to the scene's bounds."""
 WIDE_BASELINE_DEG = 15.0
 """Views all closer than this bound the depth loosely (box depth ~ width / tan(angle)): warned."""
+CLIP_SHARE = 0.05
+"""A clip to the scene box that cuts more than this share of the edit box's size along an axis is warned."""
 
 
 @dataclass(frozen=True)
@@ -77,12 +83,12 @@ def _bounds(halfspaces: Sequence[tuple[np.ndarray, np.ndarray]], scene_box: Opti
     return low, high, status
 
 
-def check_view_baselines(views: Sequence[SketchView]) -> float:
+def check_view_baselines(views: Sequence[SketchView], quiet: bool = False) -> float:
     """The widest angle (degrees) between two views' lines of sight to their sketches: depth comes from it alone.
 
     The same view twice, or lines of sight all within MIN_BASELINE_DEG of one line (from one side or from opposite
     sides: frusta facing each other meet all along it), are refused (the edit box would run out to the scene's
-    bounds); all within WIDE_BASELINE_DEG is warned."""
+    bounds); all within WIDE_BASELINE_DEG is warned (unless `quiet`: said already)."""
     directions = [sketch_direction(view) for view in views]
     name = lambda i: view_label(views, i)  # noqa: E731
     cosines = {(i, j): float(np.clip(directions[i] @ directions[j], -1.0, 1.0))
@@ -99,8 +105,8 @@ def check_view_baselines(views: Sequence[SketchView]) -> float:
                f"{WIDE_BASELINE_DEG:g} degrees apart and as far from straight across from each other.")
     if widest < MIN_BASELINE_DEG:
         raise SkedUserError(message)
-    if widest < WIDE_BASELINE_DEG:
-        warnings.warn(message, UserWarning, stacklevel=3)
+    if widest < WIDE_BASELINE_DEG and not quiet:
+        warn(message)
     return widest
 
 
@@ -138,27 +144,71 @@ def check_sketches_meet(views: Sequence[SketchView]) -> None:
         refuse_apart(views, halfspaces, None)
 
 
-def compute_edit_box(views: Sequence[SketchView], scene_box: Optional[np.ndarray] = None) -> EditBox:
+def content_bounds(model_config, scene_box) -> tuple[np.ndarray, bool]:
+    """(box, bounded): the box a base's content lies in (model frame, [min, max]) and whether it holds nothing past it,
+    from nerfstudio's config fields. A field without scene contraction holds nothing past its scene box; an occupancy
+    grid (instant-ngp's) samples nothing past its outermost level, the box enlarged 2^(levels-1) times about its
+    centre; a contracted field without one (nerfacto), or a base with no field (splats), holds space past any box."""
+    box = np.asarray(scene_box, dtype=np.float64)
+    if getattr(model_config, "disable_scene_contraction", False):
+        return box, True
+    levels = getattr(model_config, "grid_levels", None)
+    if levels is None:
+        return box, False
+    centre, half = box.mean(axis=0), (box[1] - box[0]) / 2 * 2 ** (int(levels) - 1)
+    return np.stack([centre - half, centre + half]), True
+
+
+UNBOUNDED = ("The sketch frusta meet in an unbounded region: some line of sight lies inside every sketch, as the "
+             "sketches are wider than the angles between the views. Sketch from viewpoints further apart, or outline "
+             "the region more tightly.")
+
+
+def compute_edit_box(views: Sequence[SketchView], scene_box: Optional[np.ndarray] = None,
+                     bounded: bool = True, quiet: bool = False) -> EditBox:
     """Axis-aligned box around the intersection of the views' mask-box frusta.
 
-    `scene_box` ([[x0, y0, z0], [x1, y1, z1]]) clips the result. Cameras inside the sketched region or facing away
-    from it (check_camera_placement) and views that cannot bound the region's depth (the same view twice,
-    near-parallel views: check_view_baselines) are an error.
+    `scene_box` ([[x0, y0, z0], [x1, y1, z1]]) is where the base's content lies (content_bounds). `bounded`: the base
+    holds nothing past it, so it clips the result (warned where that cuts the sketched region); otherwise it bounds
+    the box only where the frusta alone do not. Cameras inside the sketched region or facing away from it
+    (check_camera_placement) and views that cannot bound the region's depth (the same view twice, near-parallel
+    views: check_view_baselines) are an error. `quiet`: no warning (the edit's inputs were checked, and warned, before
+    its model was built: engine/edit_inputs.py).
     """
     check_camera_placement(views)
-    check_view_baselines(views)
+    check_view_baselines(views, quiet)
     halfspaces = [frustum_halfspaces(view) for view in views]
     scene_box = None if scene_box is None else np.asarray(scene_box, dtype=np.float64)
-    low, high, status = _bounds(halfspaces, scene_box)
-    if 2 in status:
-        refuse_apart(views, halfspaces, scene_box)
+    whole = _bounds(halfspaces, None)
+    if 2 in whole[2]:
+        refuse_apart(views, halfspaces, scene_box if bounded else None)
+    if scene_box is None or (not bounded and all(s == 0 for s in whole[2])):
+        low, high, status = whole
+    else:
+        low, high, status = _bounds(halfspaces, scene_box)
+        if 2 in status:
+            refuse_apart(views, halfspaces, scene_box)
+        if not quiet and all(s == 0 for s in status):
+            if any(s != 0 for s in whole[2]):
+                warn(f"{UNBOUNDED[:-1]}: the edit box runs out to the scene's box.")
+            else:
+                warn_clipped(whole[:2], (low, high), scene_box)
     if any(s != 0 for s in status):
-        raise SkedUserError(
-            "The sketch frusta meet in an unbounded region: some line of sight lies inside every sketch, as the "
-            "sketches are wider than the angles between the views. Sketch from viewpoints further apart, or outline "
-            "the region more tightly."
-        )
+        raise SkedUserError(UNBOUNDED)
     return EditBox(min=low, max=high)
+
+
+def warn_clipped(whole, clipped, scene_box: np.ndarray) -> None:
+    """A bounded base's box cuts the sketched region (the edit box clipped by over CLIP_SHARE of its size): the far
+    side of what was sketched cannot be edited. On a capture, the scene is centred off the object."""
+    cut = ((whole[1] - whole[0]) - (clipped[1] - clipped[0])) / np.maximum(whole[1] - whole[0], 1e-12)
+    if cut.max() <= CLIP_SHARE:
+        return
+    low, high = np.round(scene_box, 2).tolist()
+    warn(f"The sketched region reaches past the scene's box ({low} to {high}), which this base cannot hold content "
+         f"beyond: the edit box is clipped to it, {100 * cut.max():.0f}% of its size cut off along "
+         f"{'xyz'[int(cut.argmax())]}. For a capture, train the base centred on the object (`nerfstudio-data "
+         "--center-method focus`, docs/captures.md) and edit it with the same flag.")
 
 
 def occupancy_grid_mask(

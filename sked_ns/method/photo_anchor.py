@@ -9,8 +9,8 @@ pixel, as the base was trained to. One small batch of such rays per step anchors
 the edit must keep from every training viewpoint.
 
 A ray is tested cheaply: it is safe if it misses the box holding every point with w below the
-threshold (found once on a grid over the scene box), else if all points sampled along its
-stretch inside that box have w above the threshold.
+threshold (found once on a grid over the scene box and the edit box: search_box), else if all
+points sampled along its stretch inside that box have w above the threshold.
 """
 
 from __future__ import annotations
@@ -18,6 +18,7 @@ from __future__ import annotations
 import warnings
 from typing import Callable, Optional, Tuple
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -36,10 +37,11 @@ SAMPLES_INSIDE = 64
 
 
 @torch.no_grad()
-def editable_box(preservation_weight: Callable[[Tensor], Tensor], scene_aabb: Tensor, threshold: float,
+def editable_box(preservation_weight: Callable[[Tensor], Tensor], region: Tensor, threshold: float,
                  resolution: int = GRID_RESOLUTION) -> Optional[Tensor]:
-    """(6,) min and max of every grid point with w <= threshold, dilated by one cell; None if there is none."""
-    low, high = scene_aabb[0].float(), scene_aabb[1].float()
+    """(6,) min and max of every grid point of `region` ((2, 3): search_box) with w <= threshold, dilated by one
+    cell; None if there is none."""
+    low, high = region[0].float(), region[1].float()
     axis = torch.linspace(0, 1, resolution)
     grid = torch.stack(torch.meshgrid(axis, axis, axis, indexing="ij"), dim=-1).reshape(-1, 3)
     points = low + grid * (high - low)
@@ -49,6 +51,20 @@ def editable_box(preservation_weight: Callable[[Tensor], Tensor], scene_aabb: Te
         return None
     cell = (high - low) / (resolution - 1)
     return torch.cat([editable.amin(dim=0) - cell, editable.amax(dim=0) + cell])
+
+
+def search_box(scene_aabb: Tensor, edit_low: np.ndarray, edit_high: np.ndarray, reach: float,
+               bounds: Optional[np.ndarray]) -> Tensor:
+    """(2, 3) where editable_box looks: the scene box, and on each side where the edit box reaches past it (a
+    contracted base's may: a capture's object on the box's face), out to the edit box and `reach` of its size beyond;
+    within `bounds` (the space a bounded base holds; None: unbounded)."""
+    pad = reach * (np.asarray(edit_high) - np.asarray(edit_low))
+    scene = scene_aabb.detach().cpu().double().numpy()
+    low = np.where(edit_low < scene[0], edit_low - pad, scene[0])
+    high = np.where(edit_high > scene[1], edit_high + pad, scene[1])
+    if bounds is not None:
+        low, high = np.maximum(low, bounds[0]), np.minimum(high, bounds[1])
+    return torch.as_tensor(np.stack([low, high]), dtype=scene_aabb.dtype)
 
 
 @torch.no_grad()

@@ -6,7 +6,8 @@ wreck the edit, or fail deep inside with a shape error; one that is legal but al
 USUAL_RANGES) gets a warning. The usual ranges are checked by one function (errors.unusual_settings) for SKED's
 options (OPTION_RANGES) and each guidance's (its config's `usual_ranges`, guidance/base.py). `check_options` runs when `ns-train sked` resolves its config
 (trainer.resolve_edit), `check_optimizers` with the edit's other inputs once its optimisers are known
-(engine/edit_inputs.py), `check_sketch_pixels` once the sketch set is known (model set-up).
+(engine/edit_inputs.py), `check_sketch_pixels` once the sketch set is known (there too, once: not again when the
+model is built).
 """
 
 from __future__ import annotations

@@ -31,6 +31,7 @@ from sked_ns.engine.edit_inputs import check_edit_inputs
 from sked_ns.engine.trainer import SkedTrainer, SkedTrainerConfig, save_run_config
 from sked_ns.engine.viewer import frame_on_connect, training_poses
 from sked_ns.errors import SkedUserError
+from sked_ns.method.edit_box import content_bounds
 from sked_ns.run_lock import LOCK_NAME, hold, release
 from sked_ns.session.panel import SessionPanel, StartRequest
 
@@ -68,10 +69,10 @@ class EditSession:
         self.viewer.update_scene(step=0)
         frame_on_connect(self.viewer.viser_server, training_poses(pipeline))
         self._training_buttons(False)
-        scene_box = pipeline.model.scene_box.aabb.numpy()
+        bounds = content_bounds(pipeline.model.config, pipeline.model.scene_box.aabb.numpy())
         preview = CPU_PREVIEW_WIDTH if config.machine.device_type == "cpu" else None
         render = renderer(self, self.lock, preview)
-        self.panel = SessionPanel(self.viewer.viser_server, lambda: SketchSession(render, transform, scene_box),
+        self.panel = SessionPanel(self.viewer.viser_server, lambda: SketchSession(render, transform, *bounds),
                                   prompt=model.prompt, guidance=model.guidance)
         self.panel.on_edit_again, self.panel.on_start = self._pause, self._stop_round
         self.trainer: SkedTrainer = trainer  # the round being trained

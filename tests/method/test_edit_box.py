@@ -1,6 +1,9 @@
-"""Edit box: the LP box equals a dense sampling of the frustum intersection; nerfacc layout."""
+"""Edit box: the LP box equals a dense sampling of the frustum intersection; clipped only where the base is bounded;
+nerfacc layout."""
 
 from __future__ import annotations
+
+import warnings
 
 import numpy as np
 import pytest
@@ -8,7 +11,13 @@ import torch
 from nerfacc import OccGridEstimator
 
 from sked_ns.demo.scenes.sphere import orbit_pose
-from sked_ns.method.edit_box import EditBox, check_view_baselines, compute_edit_box, occupancy_grid_mask
+from sked_ns.method.edit_box import (
+    EditBox,
+    check_view_baselines,
+    compute_edit_box,
+    content_bounds,
+    occupancy_grid_mask,
+)
 from sked_ns.sketches.cameras import project
 from sked_ns.sketches.sketch_set import SketchView
 
@@ -148,3 +157,48 @@ def test_sketches_too_wide_to_bound_the_region_say_so_and_tighter_ones_pass():
     with pytest.raises(ValueError, match=r"unbounded region.*outline the region more tightly"):
         compute_edit_box(wide)
     compute_edit_box([_cube_view(a, 10, (0, 0, 0), 0.1) for a in (0, 20)])
+
+
+def test_content_bounds_follow_nerfstudio_s_configs():
+    from nerfstudio.models.instant_ngp import InstantNGPModelConfig
+    from nerfstudio.models.nerfacto import NerfactoModelConfig
+    from nerfstudio.models.splatfacto import SplatfactoModelConfig
+
+    aabb = np.array([[-1.0, -2.0, -1.0], [1.0, 0.0, 1.0]])
+    box, bounded = content_bounds(NerfactoModelConfig(), aabb)  # contracted: space past the box is held
+    assert not bounded and np.array_equal(box, aabb)
+    assert not content_bounds(SplatfactoModelConfig(), aabb)[1]  # no box at all
+    assert content_bounds(NerfactoModelConfig(disable_scene_contraction=True), aabb)[1]
+    box, bounded = content_bounds(InstantNGPModelConfig(grid_levels=3), aabb)  # its grid's outermost level
+    assert bounded and np.allclose(box, [[-4.0, -5.0, -4.0], [4.0, 3.0, 4.0]])
+    box, bounded = content_bounds(InstantNGPModelConfig(disable_scene_contraction=True, grid_levels=1), aabb)
+    assert bounded and np.array_equal(box, aabb)
+
+
+def test_a_region_past_the_scene_box_is_kept_whole_where_the_base_holds_it_and_clipped_with_a_word_where_not():
+    views = [_cube_view(a, e, (0.9, 0, 0), 0.3) for a, e in [(0, 10), (80, 25)]]  # a region straddling x = 1
+    scene_box = np.array([[-1.0] * 3, [1.0] * 3])
+    whole = compute_edit_box(views)
+    assert whole.max[0] > 1.1
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        held = compute_edit_box(views, scene_box, bounded=False)
+        quiet = compute_edit_box(views, scene_box, quiet=True)
+    np.testing.assert_allclose(np.stack([held.min, held.max]), np.stack([whole.min, whole.max]))
+    with pytest.warns(UserWarning, match=r"clipped to it, \d+% of its size cut off along x.*--center-method focus"):
+        clipped = compute_edit_box(views, scene_box)
+    assert clipped.max[0] == pytest.approx(1.0) and np.allclose(quiet.max, clipped.max)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        inside = [_cube_view(a, e, (0, 0, 0), 0.3) for a, e in [(0, 10), (80, 25)]]
+        assert np.allclose(compute_edit_box(inside, scene_box).max, compute_edit_box(inside).max)
+
+
+def test_frusta_unbounded_without_a_box_are_bounded_by_the_scene_box_with_a_word():
+    wide = [_cube_view(a, 10, (0, 0, 0), 0.1, name=f"v{a}") for a in (0, 20)]
+    wide = [SketchView(np.ones_like(v.mask), v.camera_to_world, v.fl_x, v.fl_y, v.cx, v.cy, name=v.name) for v in wide]
+    scene_box = np.array([[-1.0] * 3, [1.0] * 3])
+    for bounded in (True, False):
+        with pytest.warns(UserWarning, match="unbounded region.*runs out to the scene's box"):
+            box = compute_edit_box(wide, scene_box, bounded=bounded)
+        assert (box.min >= -1 - 1e-9).all() and (box.max <= 1 + 1e-9).all()

@@ -2,12 +2,13 @@
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 import torch
 from nerfstudio.cameras.camera_optimizers import CameraOptimizerConfig
 from nerfstudio.cameras.rays import RayBundle
 
-from sked_ns.method.photo_anchor import correct_poses, editable_box, rays_away_from_edit
+from sked_ns.method.photo_anchor import correct_poses, editable_box, rays_away_from_edit, search_box
 
 CENTRE = torch.tensor([0.3, -0.2, 0.1])
 
@@ -63,3 +64,16 @@ def test_photos_the_base_does_not_explain_turn_the_anchor_off_loudly():
         assert check_base_explains_photos(noise(0.15), photos)[1]
     with pytest.warns(SkedPhotoWarning, match=r"--data: .* \d\.\d dB.*photo anchor is OFF"):
         assert not check_base_explains_photos(torch.rand(400, 3, generator=generator), photos)[1]  # other photos
+
+
+def test_the_search_grows_past_the_scene_box_to_an_edit_box_there_unless_the_base_is_bounded():
+    scene = torch.tensor([[-1.0] * 3, [1.0] * 3])
+    low, high = np.array([0.8, -0.1, -0.1]), np.array([1.4, 0.1, 0.1])  # a region on the box's face
+    grown = search_box(scene, low, high, 0.5, None)
+    assert torch.allclose(grown, torch.tensor([[-1.0] * 3, [1.7, 1.0, 1.0]]).double().to(grown.dtype))
+    assert torch.equal(search_box(scene, low, high, 0.5, scene.numpy()), scene)
+    inside = search_box(scene, low - [1.0, 0, 0], high - [1.0, 0, 0], 0.5, None)  # near the face, not past it
+    assert torch.equal(inside, scene)  # inside the box: searched as before
+    centre = torch.tensor([1.2, 0.0, 0.0])
+    found = editable_box(lambda p: ((p - centre).norm(dim=-1) > 0.15).float(), grown, 0.99, resolution=41)
+    assert found is not None and found[3] >= 1.35  # the far side of a region past the face is found

@@ -35,7 +35,7 @@ class LocalEdit:
     def _local_residual(self) -> LocalResidual:
         """The residual over the box bounding every point with w <= keep_threshold (and the edit box), shaped by the
         base's grid (local_field.local_grid_shape)."""
-        box = editable_box(lambda p: self.preservation_weight(p)[..., 0], self.scene_box.aabb,
+        box = editable_box(lambda p: self.preservation_weight(p)[..., 0], self.editable_search_box(),
                            min(self.config.keep_threshold, 1.0))
         low, high = self.edit_box.min, self.edit_box.max
         if box is not None:
