@@ -280,7 +280,8 @@ def table(results: Dict) -> str:
     rows = []
     for row in results["runs"]:
         s = row["summary"]
-        rows.append([row["scene"], row.get("base", "nerfacto"), row["set"], row["protocol"], row["variant"],
+        variant = row["variant"] + (f" [seed {row['seed']}]" if "seed" in row else "")
+        rows.append([row["scene"], row.get("base", "nerfacto"), row["set"], row["protocol"], variant,
                      f"{s['psnr_keep_gt_base']:.1f} -> {s['psnr_keep_gt']:.1f} ({s['psnr_keep_drop']:+.2f})",
                      _kept_pixels(s), f"{s['leak']:.4f}", _region_ios(s), _visible_ios(s),
                      f"{s['ios']:.2f} ({s['ios_min']:.2f})",
@@ -294,6 +295,11 @@ def table(results: Dict) -> str:
 _BEFORE_RESIDUAL = ["--pipeline.model.colour-residual", "False"]
 _SOFT_HOLD = ["--pipeline.model.keep-threshold", "1"]  # the paper's soft hold (no sample held exactly)
 VARIANTS = {"default": [],
+            # NeRF bases: what an edit trains, pinned whatever the default is.
+            "local (NeRF edits: a residual over the edit box on the frozen base, the default)": [
+                "--pipeline.model.nerf-edit-field", "local"],
+            "full-copy (NeRF edits: a trained copy of the base's whole field, the default before the local residual)": [
+                "--pipeline.model.nerf-edit-field", "full-copy"],
             "no-colour-residual": _BEFORE_RESIDUAL,
             "paper (occupancy target, whole-ray L_sil, no photo anchor, no exact hold)": [
                 "--pipeline.model.preservation-target", "occupancy", "--pipeline.model.silhouette-opacity", "any",
@@ -357,9 +363,9 @@ def _tag(variant: str) -> str:
     return variant.split()[0]
 
 
-def _run_tag(base: str, protocol: str, variant: str) -> str:
-    """The name of a run's files under --work: splat bases' edits apart from nerfacto's."""
-    return f"{'splat-' if base == 'splatfacto' else ''}{protocol}-{_tag(variant)}"
+def _run_tag(base: str, protocol: str, variant: str, seed: Optional[int] = None) -> str:
+    """The name of a run's files under --work: splat bases' edits apart from nerfacto's, another seed's apart."""
+    return f"{'splat-' if base == 'splatfacto' else ''}{protocol}-{_tag(variant)}{'' if seed is None else f'-seed{seed}'}"
 
 
 def _variant(tag: str) -> str:
@@ -374,7 +380,7 @@ def rescore(output: Path, work: Path) -> None:
     only if its sked-eval JSON holds the recorded IoS (a later run of the same tag replaces the files)."""
     results = json.loads(output.read_text())
     for row in results["runs"]:
-        tag = _run_tag(row.get("base", "nerfacto"), row["protocol"], row["variant"])
+        tag = _run_tag(row.get("base", "nerfacto"), row["protocol"], row["variant"], row.get("seed"))
         scene_work = work / row["scene"]
         evaluation, edits = scene_work / f"{tag}.eval.json", scene_work / "edits" / tag / row["scene"] / "sked"
         if not (evaluation.exists() and edits.exists()):
@@ -408,6 +414,8 @@ def main() -> None:
     parser.add_argument("--step-time", metavar="SCENE", default=None,
                         help="only time a CPU edit step of SCENE's splatfacto and nerfacto bases (cpu-100's render size; "
                              "run with OMP_NUM_THREADS=1 for one core); prints JSON")
+    parser.add_argument("--seed", type=int, default=None,
+                        help="the edits' --machine.seed (default: nerfstudio's, 42): a run-to-run spread; bases keep theirs")
     parser.add_argument("--replot", action="store_true")
     parser.add_argument("--rescore", action="store_true",
                         help="re-score the sketch views of the recorded runs whose edits are still under --work")
@@ -440,7 +448,8 @@ def main() -> None:
                "base_rays_per_batch": BASE_RAYS, "environment": harness.environment("cpu"), "runs": []}
     if args.output.exists() and not args.quick:
         results["runs"] = json.loads(args.output.read_text()).get("runs", [])
-    done = {(r["scene"], r.get("base", "nerfacto"), r["protocol"], r["variant"]) for r in results["runs"]}
+    done = {(r["scene"], r.get("base", "nerfacto"), r["protocol"], r["variant"], r.get("seed")) for r in results["runs"]}
+    seed_flags = [] if args.seed is None else ["--machine.seed", str(args.seed)]
     splat = args.base == "splatfacto"
     if splat:
         results["splat_fit"] = SPLAT_FIT
@@ -457,17 +466,19 @@ def main() -> None:
         print(f"{scene}: base ready ({time.perf_counter() - start:.0f} s)", flush=True)
         for protocol_name, protocol in protocols.items():
             for variant in variants:
-                if (scene, args.base, protocol_name, variant) in done:
+                if (scene, args.base, protocol_name, variant, args.seed) in done:
                     continue
-                tag = _run_tag(args.base, protocol_name, variant)
+                tag = _run_tag(args.base, protocol_name, variant, args.seed)
                 start = time.perf_counter()
-                edit_run = edit(base, paths, scene, protocol, work / "edits" / tag, work / f"{tag}.log", VARIANTS[variant])
+                edit_run = edit(base, paths, scene, protocol, work / "edits" / tag, work / f"{tag}.log",
+                                [*VARIANTS[variant], *seed_flags])
                 metrics = score(edit_run, paths, work / f"{tag}.eval.json", work / f"{tag}.eval.log")
                 seconds = time.perf_counter() - start
                 summary = {**summarise(metrics), **sketch_view_fill(edit_run, scene, paths["sketches"])}
                 results["runs"].append({"scene": scene, "base": args.base, "set": _set(scene),
                                         "protocol": protocol_name, "variant": variant,
-                                        "seconds": seconds, "summary": summary})
+                                        **({} if args.seed is None else {"seed": args.seed}),
+                                        "seconds": seconds, "commit": harness.commit(), "summary": summary})
                 harness.write_results(args.output, results)
                 print(table({"runs": results["runs"][-1:]}).splitlines()[-1], flush=True)
     harness.report(table(results), args.output)
