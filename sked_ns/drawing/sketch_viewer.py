@@ -68,6 +68,9 @@ def sketch_frame(pipeline) -> DataparserTransform:
     entries are in) -> the pipeline's model frame."""
     from sked_ns.sketches.data_frame import data_frame_transform
 
+    recorded = getattr(pipeline.datamanager, "data_frame_transform", None)
+    if recorded is not None:  # an edit as the base: the frame it edited in, as it recorded it (its data may have moved)
+        return recorded
     outputs = pipeline.datamanager.train_dataparser_outputs
     transform = DataparserTransform(outputs.dataparser_transform.numpy().astype(np.float64), float(outputs.dataparser_scale))
     return data_frame_transform(pipeline.datamanager.config.dataparser, transform)
