@@ -18,7 +18,7 @@ ball, and where the point the cameras look at (the fox) lands in nerfstudio's fr
 `pipeline.model.guidance:reference --pipeline.model.guidance.primitive cone`) at a CPU's protocol (RESOLUTION px
 guidance and silhouette renders, SAMPLES_PER_RAY_SCALE of the base's samples), in this process as `ns-train` runs
 it, timing each step and the process's peak resident memory while the steps run; with --output it then measures
-the edit (`capture_measure.py`: held-out photos, the sketch views, and a strip of pictures beside the results).
+the edit (`capture_measure.py`: held-out photos and the sketch views; --strip: its picture strip).
 """
 
 from __future__ import annotations
@@ -178,7 +178,7 @@ def main(argv=None) -> None:
         edit.add_argument(name, type=Path)
     edit.add_argument("--iterations", type=int, default=100)
     edit.add_argument("--output", type=Path, help="measure the edit and write the results here (JSON)")
-    edit.add_argument("--strip", type=int, default=3, help="held-out photos in the picture strip beside --output")
+    edit.add_argument("--strip", type=Path, help="a PNG of photo | base | edit | difference at three held-out photos")
     arguments = parser.parse_args(argv)
     if arguments.command == "edit":
         if arguments.output is not None:
@@ -192,7 +192,7 @@ def main(argv=None) -> None:
             from capture_measure import measure
 
             with torch.no_grad():
-                result.update(measure(run, strip=arguments.output.with_suffix(".png"), strip_photos=arguments.strip))
+                result.update(measure(run, strip=arguments.strip))
         harness.publish(result, arguments.output)
     elif arguments.command == "sketches":
         save_sketch_set(hat_sketches(arguments.data, arguments.views), arguments.out)
