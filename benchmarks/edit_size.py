@@ -7,7 +7,9 @@ Sets up a real `ns-train sked` edit of the demo scene for each base (fitted with
 nerfacto's hash table 2^19), once per `--pipeline.model.nerf-edit-field` ("full-copy", 0.7's edit, and "local"),
 runs one iteration (the guidance replaced by a stand-in image gradient, as the step census does) so that Adam's state
 exists, saves the checkpoint as the trainer does, and records: trainable parameters, optimiser state bytes, the
-checkpoint's size (and its model and optimiser parts), and the local grid's shape.
+checkpoint's size (and its model and optimiser parts), the local grid's shape, and what the edit holds between steps
+(its model with the frozen base, and the optimiser state, as benchmarks/memory.py counts them) beside the base's
+weights as the memory plan reads them (tests/engine/test_memory_plan.py checks the plan against both).
 
 Writes benchmarks/results/edit_size.json and prints a table.
 """
@@ -23,6 +25,7 @@ from typing import Dict
 import harness
 import torch
 from harness import ImageGradient
+from memory import resident_bytes
 
 REPRESENTATIONS = ("full-copy", "local")
 
@@ -58,7 +61,11 @@ def size_of(work: Path, method: str, base: Path, representation: str, args) -> D
     optimisers = trainer.optimizers.optimizers
     model = trainer.pipeline.model
     local = getattr(model, "local_field", None)
+    from sked_ns.engine.memory_plan import checkpoint_weight_bytes
+
     return {
+        "resident_bytes": resident_bytes(trainer),
+        "base_weight_bytes": checkpoint_weight_bytes(Path(model.config.base_checkpoint)),
         "trainable_parameters": sum(p.numel() for o in optimisers.values() for g in o.param_groups for p in g["params"]),
         "optimiser_state_bytes": sum(tensor_bytes(o.state_dict()["state"]) for o in optimisers.values()),
         "checkpoint_bytes": checkpoint.stat().st_size,

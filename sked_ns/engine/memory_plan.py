@@ -3,7 +3,9 @@
 A model of what benchmarks/memory.py measures (docs/benchmarks.md, Memory), part by part:
 
 - resident: the editable copy of the base, the frozen base and Adam's two moments (about 4x the
-  base's weights as its checkpoint holds them), and their gradients during the step (1x more);
+  base's weights as its checkpoint holds them), and their gradients during the step (1x more); a local NeRF
+  edit (local_field.py) trains its residual alone, beside the base's modules held frozen (as loaded, and the
+  frozen base: benchmarks/edit_size.py measures them), and only the residual's gradients come in the step;
 - the NeRF side of a step: what each ray rendered with gradients keeps for the backward pass (the
   random view, the sketch views at their L_sil size, photo rays), plus one gradient-checkpointed chunk's
   activations, or every sample's activations when chunking is off; a splat edit's side per rendered pixel;
@@ -19,7 +21,6 @@ The plan also says roughly how long a step will take there (engine/step_time.py)
 
 from __future__ import annotations
 
-import functools
 import json
 import math
 import struct
@@ -28,6 +29,7 @@ from pathlib import Path
 from typing import Dict, List, Optional, Tuple
 
 from sked_ns.engine.step_time import StepTime, slow_step_warning, step_time
+from sked_ns.engine.weight_bytes import checkpoint_weight_bytes
 from sked_ns.errors import SkedUserError, warn
 from sked_ns.guide import guide
 from sked_ns.models.registry import representation_named, representation_of
@@ -52,6 +54,9 @@ class StepModel:
     resident_per_weight_byte: float = 4.0
     """The edit's resident tensors per byte of the base's weights: the editable copy, the frozen base, Adam's two
     moments, and what the edit adds (nerfacto's colour residual grid)."""
+    local_resident_per_weight_byte: float = 0.0
+    """A local NeRF edit's resident tensors per byte of the base's weights, its residual apart: the base's modules as
+    loaded and frozen, neither trained (benchmarks/edit_size.py's `resident_bytes`)."""
     kept_per_sketch_ray: Optional[float] = None
     """Per sketch-view (or photo) ray when it differs from a random-view ray's: instant-ngp samples only occupied
     cells, and random views frame the edit while sketch views show the whole scene. None: as a random-view ray."""
@@ -65,11 +70,11 @@ class StepModel:
 
 STEP_MODELS: Dict[str, StepModel] = {
     "nerfacto": StepModel(kept_per_ray=21443, activation_per_ray=471768, activation_per_sample=8087, samples_per_ray=400,
-                          resident_per_weight_byte=4.502),
+                          resident_per_weight_byte=4.502, local_resident_per_weight_byte=1.811),
     # instant-ngp's samples per ray follow its occupancy grid (the scene); 16 or more fill a chunk at any step's rays.
     "instant-ngp": StepModel(kept_per_ray=5115, activation_per_ray=46529, activation_per_sample=7300, samples_per_ray=16,
                              kept_per_sketch_ray=16266, activation_per_sketch_ray=393534,
-                             resident_per_weight_byte=4.251),
+                             resident_per_weight_byte=4.251, local_resident_per_weight_byte=2.721),
     "splatfacto": StepModel(kept_per_ray=76.02, activation_per_ray=19.13, activation_per_sample=0.0, samples_per_ray=1,
                             kept_per_weight_byte=6.274, step_per_weight_byte=379.5, resident_per_weight_byte=5.498),
 }
@@ -111,22 +116,6 @@ class MemoryPlan:
             parts += (f"; Stable Diffusion{where} {self.sd_weights / GB:.1f} GB and its step {self.sd_step / GB:.1f} GB, "
                       "while the edit's render waits for it")
         return f"Expected peak memory on {self.device}: {self.peak / GB:.1f} GB ({parts})"
-
-
-def checkpoint_weight_bytes(checkpoint: Path) -> float:
-    """Bytes of a base checkpoint's model weights (floating-point tensors)."""
-    checkpoint = Path(checkpoint)
-    return _weight_bytes(checkpoint.resolve(), checkpoint.stat().st_mtime_ns)
-
-
-@functools.lru_cache(maxsize=8)
-def _weight_bytes(checkpoint: Path, modified: int) -> float:
-    # `ns-train sked` resolves its config more than once per start: the checkpoint is read once.
-    from sked_ns.method.frozen_base import read_model_state
-
-    state = read_model_state(checkpoint)
-    return float(sum(value.numel() * value.element_size() for value in state.values()
-                     if hasattr(value, "is_floating_point") and value.is_floating_point()))
 
 
 @dataclass(frozen=True)
@@ -171,10 +160,12 @@ def field_samples(representation: str, work: StepWork) -> Optional[float]:
     return (work.rays + work.sketch_rays) * STEP_MODELS[representation].samples_per_ray * work.sample_scale
 
 
-def nerf_side(representation: str, work: StepWork, base_bytes: float) -> Tuple[float, float]:
-    """(the side's own step peak, what it holds when the guidance runs), in bytes; the gradients of the editable
-    weights (base_bytes) come in the backward pass."""
+def nerf_side(representation: str, work: StepWork, base_bytes: float,
+              trained: Optional[float] = None) -> Tuple[float, float]:
+    """(the side's own step peak, what it holds when the guidance runs), in bytes; the gradients of the trained
+    weights (`trained`, `trained_bytes`; None: the base's, a whole copy) come in the backward pass."""
     model = STEP_MODELS[representation]
+    trained = base_bytes if trained is None else trained
     if representation_named(representation).renders == "cameras":  # per pixel and per Gaussian: kept, and added
         held = work.rays * model.kept_per_ray + base_bytes * model.kept_per_weight_byte
         return held + work.rays * model.activation_per_ray + base_bytes * (model.step_per_weight_byte + 1), held
@@ -182,11 +173,11 @@ def nerf_side(representation: str, work: StepWork, base_bytes: float) -> Tuple[f
     if work.chunk <= 0:  # every activation kept: counted as held from the render on
         sketch = model.activation_per_ray if model.activation_per_sketch_ray is None else model.activation_per_sketch_ray
         held = (work.rays * model.activation_per_ray + work.sketch_rays * sketch) * work.sample_scale
-        return held + base_bytes, held
+        return held + trained, held
     sketch = model.kept_per_ray if model.kept_per_sketch_ray is None else model.kept_per_sketch_ray
     held = (work.rays * model.kept_per_ray + work.sketch_rays * sketch) * work.sample_scale
     transient = min(work.chunk, rays * model.samples_per_ray * work.sample_scale) * model.activation_per_sample
-    return held + transient + base_bytes, held
+    return held + transient + trained, held
 
 
 def _safetensors_parameters(path: Path, prefixes: Tuple[str, ...] = ()) -> Optional[int]:
@@ -238,9 +229,33 @@ def sd_bytes(guidance, device_type: str) -> Tuple[float, float]:
     return parameters * size, step
 
 
+def is_local(representation: str, options) -> bool:
+    """Whether the edit trains a local residual (local_field.py) rather than a copy of its base."""
+    from sked_ns.models.nerf.local_field import LOCAL
+
+    return representation_named(representation).renders == "rays" and getattr(options, "nerf_edit_field", None) == LOCAL
+
+
+def trained_bytes(representation: str, base_bytes: float, options) -> float:
+    """Bytes of the weights an edit trains: a local residual's at its largest table (local_field.local_grid_shape:
+    the base's levels and features, its table capped), else the base's (a whole copy; a splat edit's Gaussians)."""
+    from sked_ns.models.nerf.local_field import HIDDEN, MAX_LOG2_TABLE, OUTPUTS
+
+    if not is_local(representation, options):
+        return base_bytes
+    levels, features = int(getattr(options, "num_levels", 16)), int(getattr(options, "features_per_level", 2))
+    table = 2 ** min(MAX_LOG2_TABLE, int(getattr(options, "log2_hashmap_size", MAX_LOG2_TABLE)))
+    head = levels * features * HIDDEN + HIDDEN + HIDDEN * OUTPUTS + OUTPUTS
+    return 4.0 * (levels * table * features + head)
+
+
 def resident_bytes(representation: str, base_bytes: float, options) -> float:
-    """What the edit holds between steps: its model and optimiser state (splats: the seeds too)."""
+    """What the edit holds between steps: its model and optimiser state (splats: the seeds too); a local NeRF edit,
+    its base's modules frozen, and its residual with Adam's two moments of it."""
     from sked_ns.method.options import is_carving
+    if is_local(representation, options):
+        frozen = STEP_MODELS[representation].local_resident_per_weight_byte * base_bytes
+        return frozen + 3.0 * trained_bytes(representation, base_bytes, options)
     seeds_new = representation_named(representation).seeds_new_gaussians and not is_carving(options)
     seeds = options.num_seeds * SEED_BYTES if seeds_new else 0.0
     return STEP_MODELS[representation].resident_per_weight_byte * base_bytes + seeds
@@ -257,7 +272,7 @@ def plan_edit(config) -> MemoryPlan:
     device = machine.device_type if machine.device_type != "cuda" else "cuda:0"
     weights = checkpoint_weight_bytes(base_weights(options))
     work = step_work(options, config.pipeline.datamanager, representation)
-    step, held = nerf_side(representation, work, weights)
+    step, held = nerf_side(representation, work, weights, trained_bytes(representation, weights, options))
     plan = MemoryPlan(device=device, resident=resident_bytes(representation, weights, options), nerf_step=step,
                       held_at_guidance=held)
     sd_size = sd_device_type = None

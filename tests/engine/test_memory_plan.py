@@ -17,6 +17,7 @@ from sked_ns.guidance.stable_diffusion import StableDiffusionGuidanceConfig
 from sked_ns.method.options import SkedOptions
 
 RESULTS = Path(__file__).resolve().parents[2] / "benchmarks" / "results" / "memory.json"
+EDIT_SIZE = RESULTS.parent / "edit_size.json"
 WITHIN = 0.25
 """The plan's promise: within 25% of what the benchmark measured."""
 
@@ -53,7 +54,9 @@ def test_the_plan_predicts_every_measured_step_within_a_quarter():
         step, held = nerf_side(representation, work, weights)
         _close(step / GB, entry["chunked"]["step_peak_gb"], f"{key} step")
         _close(held / GB, entry["chunked"]["held_at_guidance_gb"], f"{key} held at the guidance")
-        resident = memory_plan.resident_bytes(representation, weights, SkedOptions(prompt="a hat"))  # not carving
+        # Measured before NeRF edits trained a local residual: whole copies.
+        options = SkedOptions(prompt="a hat", nerf_edit_field=settings.get("nerf_edit_field", "full-copy"))
+        resident = memory_plan.resident_bytes(representation, weights, options)  # not carving
         _close(resident / GB, sum(entry["resident_gb"].values()), f"{key} resident")
         unchunked = entry.get("unchunked", {})
         if "step_peak_gb" in unchunked:
@@ -65,6 +68,68 @@ def test_the_plan_predicts_every_measured_step_within_a_quarter():
                                           sd_weights=sum(sd["weights_gb"].values()) * GB,
                                           sd_step=memory_plan.SD_STEP_BYTES_AT_512 * (sd["image_size"] / 512) ** 2)
             _close(plan.peak / GB, entry["total_fp32_gb"], f"{key} whole step")
+
+
+def test_the_plan_holds_what_the_edits_representation_holds():
+    """A local NeRF edit holds its base's modules frozen and trains its residual alone; a whole-field copy trains and
+    holds Adam's moments for all of it: each planned as benchmarks/edit_size.py measured it at nerfstudio's sizes."""
+    from sked_ns.models.nerf.nerfacto import SkedNerfactoModelConfig
+    from sked_ns.models.nerf.ngp import SkedNGPModelConfig
+
+    configs = {"nerfacto": SkedNerfactoModelConfig, "instant-ngp": SkedNGPModelConfig}
+    measured = json.loads(EDIT_SIZE.read_text())
+    for base, config in configs.items():
+        for field, entry in measured[base].items():
+            options = config(prompt="a hat", nerf_edit_field=field)
+            weights = entry["base_weight_bytes"]
+            resident = memory_plan.resident_bytes(base, weights, options)
+            _close(resident / GB, sum(entry["resident_bytes"].values()) / GB, f"{base} {field} resident")
+            trained = memory_plan.trained_bytes(base, weights, options)
+            if field == "local":  # nerfstudio's sizes put the residual's table at its cap: the plan's bound is exact
+                assert trained == pytest.approx(4 * entry["trainable_parameters"]), base
+            else:
+                assert trained == weights, base
+    # The step's gradients are the trained weights': a local edit's residual, not its base.
+    work = StepWork(4096.0, 1000.0, 1.0, 65536)
+    local = configs["nerfacto"](prompt="a hat", nerf_edit_field="local")
+    weights = 80e6
+    whole, _ = nerf_side("nerfacto", work, weights)
+    residual, _ = nerf_side("nerfacto", work, weights, memory_plan.trained_bytes("nerfacto", weights, local))
+    assert whole - residual == pytest.approx(weights - memory_plan.trained_bytes("nerfacto", weights, local))
+
+
+def _checkpoint(path: Path, state) -> Path:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    torch.save({"pipeline": {f"_model.{key}": value for key, value in state.items()}, "step": 1}, path)
+    return path
+
+
+def _gaussians(count: int):
+    shapes = {"means": (3,), "scales": (3,), "quats": (4,), "features_dc": (3,), "features_rest": (15, 3),
+              "opacities": (1,)}
+    return {f"gauss_params.{name}": torch.zeros(count, *shape) for name, shape in shapes.items()}
+
+
+def test_an_edit_saved_as_its_changes_weighs_the_scene_it_composes(tmp_path):
+    """A splat edit saved as its changes (its edited and new Gaussians, and which of its base's it keeps) weighs as
+    many Gaussians as its scene holds; a local NeRF edit weighs its residual and the base its config names."""
+    from sked_ns.engine.weight_bytes import checkpoint_weight_bytes
+
+    whole = checkpoint_weight_bytes(_checkpoint(tmp_path / "splat" / "base.ckpt", _gaussians(20)))
+    kept = torch.zeros(20, dtype=torch.bool)
+    kept[:12] = True
+    changes = checkpoint_weight_bytes(_checkpoint(tmp_path / "splat" / "edit.ckpt",
+                                                  {**_gaussians(5), "kept_in_base": kept}))
+    assert changes == pytest.approx(whole * 17 / 20)
+    base = _checkpoint(tmp_path / "nerf" / "base.ckpt", {"field.weights": torch.zeros(1000)})
+    edit = _checkpoint(tmp_path / "nerf" / "edit" / "nerfstudio_models" / "step-1.ckpt",
+                       {"local_field.encoding.table": torch.zeros(100)})
+    (edit.parent.parent / "config.yml").write_text(
+        "!!python/object:types.SimpleNamespace\npipeline: !!python/object:types.SimpleNamespace\n"
+        f"  model: !!python/object:types.SimpleNamespace\n    base_checkpoint: {base}\n")
+    assert checkpoint_weight_bytes(edit) == 4 * (1000 + 100)
+    (edit.parent.parent / "config.yml").unlink()  # its base unknown: what it holds itself
+    assert checkpoint_weight_bytes(edit.rename(edit.with_name("step-2.ckpt"))) == 4 * 100
 
 
 def test_the_default_step_fits_the_targets():

@@ -119,6 +119,30 @@ def test_ngp_edit_outputs_preservation_weight_and_resumes(ngp_scene, ngp_edited,
     assert config.load_dir == ngp_edited["run"] / "nerfstudio_models"
 
 
+def test_a_local_ngp_edit_saves_only_the_grid_cells_it_changed_and_renders_the_same_loaded(ngp_edited):
+    model = ngp_edited["trainer"].pipeline.model.eval()
+    assert model.local_field is not None, "the default edit is local"
+    (checkpoint,) = sorted((ngp_edited["run"] / "nerfstudio_models").glob("step-*.ckpt"))[-1:]
+    saved = torch.load(checkpoint, map_location="cpu", weights_only=False)["pipeline"]
+    assert not [key for key in saved if key.endswith(("occupancy_grid.occs", "occupancy_grid.binaries"))]
+    changed = saved["_model.occupancy_grid.changed_cells"].long()
+    # What the edit changed lies in its residual's box: every other cell is still the base's.
+    assert 0 < len(changed) and torch.isin(changed, model.edit_cells.cpu()).all()
+    assert len(model.edit_cells) < model.occupancy_grid.occs.numel()
+    loaded = load_pipeline(ngp_edited["run"]).model
+    assert torch.equal(loaded.occupancy_grid.occs, model.occupancy_grid.occs)
+    assert torch.equal(loaded.occupancy_grid.binaries, model.occupancy_grid.binaries)
+    for view in model.sketch_set.views:
+        before, after = render_at(model, view, 32), render_at(loaded, view, 32)
+        for key in ("rgb", "accumulation"):
+            assert torch.equal(before[key], after[key]), key
+    # An edit saved with its whole grid (0.8) loads that grid as it is.
+    whole = {key: value for key, value in torch.nn.Module.state_dict(model).items() if not key.startswith("field.")}
+    loaded.occupancy_grid.occs.zero_()
+    loaded.load_state_dict(whole)
+    assert torch.equal(loaded.occupancy_grid.occs, model.occupancy_grid.occs)
+
+
 def test_rendering_an_ngp_run_without_cuda_is_explained(ngp_scene):
     if torch.cuda.is_available():
         pytest.skip("this machine renders instant-ngp runs with nerfacc")

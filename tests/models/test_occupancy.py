@@ -11,6 +11,8 @@ import torch
 
 from sked_ns.models.nerf.occupancy import (
     PortableOccGridEstimator,
+    grid_changes,
+    grid_with_changes,
     march_grid,
     marcher_rtol,
     packed_exclusive_transmittance,
@@ -246,3 +248,20 @@ def test_torch_path_agrees_with_nerfacc_on_cuda(rng, cone_angle):
     rays, starts, ends, sigmas, n_rays = _packed(rng)
     on_gpu = render_weights(starts.float().cuda(), ends.float().cuda(), sigmas.float().cuda(), rays.cuda(), n_rays)
     torch.testing.assert_close(on_gpu.cpu(), render_weights(starts.float(), ends.float(), sigmas.float(), rays, n_rays))
+
+
+def test_a_grid_saved_as_its_changes_is_rebuilt_bit_for_bit_over_its_base(rng):
+    base = _grid(rng)
+    base.occs = torch.from_numpy(rng.random(base.occs.shape).astype(np.float32))
+    edited = _grid(rng)
+    edited.occs, edited.binaries = base.occs.clone(), base.binaries.clone()
+    cells = torch.tensor([0, 7, 100, 200])
+    edited.occs[cells[:3]] *= 0.5  # three occupancies move, one of them and one more cell flip their bit
+    flat = edited.binaries.view(-1)
+    flat[cells[2:]] = ~flat[cells[2:]]
+    changes = grid_changes(edited, base)
+    assert changes["changed_cells"].tolist() == cells.tolist(), "the changed cells and only those"
+    assert changes["changed_cells"].dtype == torch.int32
+    occs, binaries = grid_with_changes(base, changes)
+    assert torch.equal(occs, edited.occs) and torch.equal(binaries, edited.binaries)
+    assert binaries.shape == base.binaries.shape and torch.equal(base.binaries.view(-1)[cells[:2]], flat[cells[:2]])

@@ -4,12 +4,16 @@ An NGP base's occupancy grid is off wherever the base is empty, so new content c
 be sampled there. During the warm-up the cells of the sketches' visual hull (inside the edit
 box) are switched on and no cell is pruned; after it, the grid follows the edited field as in instant-ngp. The grid sampler is
 nerfacc's on CUDA and a plain-torch one elsewhere (`sked_ns.models.nerf.occupancy`).
+
+A local edit (local_field.py) is its base outside its residual's box, and so is its grid: only the cells that box
+meets are updated, every other cell stays the frozen base's, and the checkpoint holds the cells that differ from the
+base's grid (`occupancy.grid_changes`), rebuilt over the base's grid at load.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Dict, List, Tuple, Type
+from typing import Dict, List, Optional, Tuple, Type
 
 import numpy as np
 import torch
@@ -21,12 +25,23 @@ from nerfstudio.models.instant_ngp import InstantNGPModelConfig, NGPModel
 from torch import Tensor
 from torch.nn import Parameter
 
-from sked_ns.method.edit_box import occupancy_grid_mask
+from sked_ns.method.edit_box import EditBox, occupancy_grid_mask
 from sked_ns.method.options import SkedOptions, taken_from_the_base, without_lpips
 from sked_ns.method.preservation import check_beta
 from sked_ns.models.nerf.field_edit import NERF_EDIT_OWNED, SkedMixin
 from sked_ns.models.nerf.nerfacc_backend import install_lazy_backend
-from sked_ns.models.nerf.occupancy import PortableOccGridEstimator, render_weights
+from sked_ns.models.nerf.occupancy import (
+    GRID_CHANGES,
+    PortableOccGridEstimator,
+    grid_changes,
+    grid_with_changes,
+    render_weights,
+)
+
+EMA_DECAY, OCC_THRESHOLD = 0.95, 0.01
+"""instant-ngp's grid update (nerfacc's `OccGridEstimator._update` defaults)."""
+GRID_PREFIXES = ("occupancy_grid.", "sampler.occupancy_grid.")
+"""Where the edit's grid appears in its state (the sampler holds the same module)."""
 
 
 @dataclass
@@ -75,7 +90,19 @@ class SkedNGPModel(SkedMixin, NGPModel):
         cells = occupancy_grid_mask(self.edit_box, self.scene_aabb.tolist(), resolution, self.config.grid_levels)
         cells = self._hull_cells(cells)
         self.register_buffer("edit_box_cells", cells.to(self.occupancy_grid.binaries.device), persistent=False)
+        self.register_buffer("edit_cells", self._edit_cells(), persistent=False)
         self._switch_on_edit_box()
+
+    def _edit_cells(self) -> Optional[Tensor]:
+        """Flat indices (as the grid's `occs`) of the cells a local edit can change: those its residual's box meets,
+        and the edit box's switched-on cells; None for a whole-field copy, which can change any."""
+        if self.local_field is None:
+            return None
+        low, high = self.local_field.box.cpu().numpy()
+        meets = occupancy_grid_mask(EditBox(min=low, max=high), self.scene_aabb.tolist(),
+                                    self.occupancy_grid.resolution.tolist(), self.config.grid_levels)
+        meets = meets.to(self.edit_box_cells.device) | self.edit_box_cells
+        return meets.reshape(-1).nonzero()[:, 0]
 
     @torch.no_grad()
     def _hull_cells(self, cells: Tensor) -> Tensor:
@@ -112,6 +139,10 @@ class SkedNGPModel(SkedMixin, NGPModel):
     @torch.no_grad()
     def update_occupancy_grid(self, step: int) -> None:
         """instant-ngp's EMA update; during the warm-up no cell turns off and the visual hull's cells stay on."""
+        if step % self.config.grid_update_interval:
+            return
+        if self.local_field is not None:
+            return self._update_edit_cells()
         grid = self.occupancy_grid
         before = grid.binaries.clone()
         # The base's cells are already known: sample them like instant-ngp after its own warm-up.
@@ -121,6 +152,49 @@ class SkedNGPModel(SkedMixin, NGPModel):
         )
         if self.edit_box_boost() > 0:
             grid.binaries |= before | self.edit_box_cells
+
+    @torch.no_grad()
+    def _update_edit_cells(self) -> None:
+        """instant-ngp's EMA update on the cells a local edit can change, each sampled at a random point: outside
+        them the edit's density is the base's, and so is its grid."""
+        grid, cells = self.occupancy_grid, self.edit_cells
+        boxes = grid.aabbs[cells // grid.cells_per_lvl]
+        unit = (grid.grid_coords[cells % grid.cells_per_lvl] + torch.rand(len(cells), 3, device=cells.device)) / grid.resolution
+        occupancy = self.held_density(boxes[:, :3] + unit * (boxes[:, 3:] - boxes[:, :3]))[..., 0] * self.config.render_step_size
+        occs, binaries = grid.occs, grid.binaries.view(-1)
+        occs[cells] = torch.maximum(occs[cells] * EMA_DECAY, occupancy)
+        seen = occs >= 0  # nerfacc marks cells no camera sees with -1
+        threshold = ((occs * seen).sum() / seen.sum().clamp_min(1)).clamp(max=OCC_THRESHOLD)
+        on = occs[cells] > threshold
+        if self.edit_box_boost() > 0:
+            on |= binaries[cells] | self.edit_box_cells.view(-1)[cells]
+        binaries[cells] = on
+
+    # ---- what a checkpoint holds ------------------------------------------------------------
+    def state_dict(self, *args, destination=None, prefix: str = "", keep_vars: bool = False):
+        """A local edit's grid saved as its changes to the base's grid (the base's is read from the base copy)."""
+        state = super().state_dict(*args, destination=destination, prefix=prefix, keep_vars=keep_vars)
+        if self.local_field is not None:
+            for key in [prefix + grid + name for grid in GRID_PREFIXES for name in ("occs", "binaries")]:
+                state.pop(key, None)
+            changes = grid_changes(self.occupancy_grid, self.frozen_base.occupancy_grid)
+            state.update({f"{prefix}occupancy_grid.{name}": value for name, value in changes.items()})
+        return state
+
+    def load_state_dict(self, state_dict, strict: bool = True, *args, **kwargs):
+        """A grid saved as its changes is rebuilt over the frozen base's; a whole grid (0.8) loads as it is."""
+        state = dict(state_dict)
+        if "occupancy_grid.changed_cells" in state:
+            changes = {name: state.pop(f"occupancy_grid.{name}") for name in GRID_CHANGES}
+            occs, binaries = grid_with_changes(self.frozen_base.occupancy_grid, changes)
+            for grid in GRID_PREFIXES:
+                state[f"{grid}occs"], state[f"{grid}binaries"] = occs, binaries
+        return super().load_state_dict(state, strict, *args, **kwargs)
+
+    def _use_earlier_edit(self, state: Dict[str, Tensor]) -> None:
+        super()._use_earlier_edit(state)
+        # The earlier edit's grid as it rendered it (its checkpoint may hold only its changes to its own base's).
+        self.occupancy_grid.load_state_dict(self.__dict__["_earlier"].occupancy_grid.state_dict())
 
     def get_param_groups(self) -> Dict[str, List[Parameter]]:
         return self._hash_grid_groups(fields=self.field)

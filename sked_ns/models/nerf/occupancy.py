@@ -310,3 +310,26 @@ def sample_agreement(reference: Tuple[Tensor, Tensor, Tensor], other: Tuple[Tens
         "matched_other": float(theirs.float().mean()) if len(theirs) else 1.0,
         "max_matched_difference": float(gap[ours].max()) if ours.any() else 0.0,
     }
+
+
+GRID_CHANGES = ("changed_cells", "changed_occs", "changed_binaries")
+"""A local edit's occupancy grid as saved: the cells where it differs from its frozen base's grid."""
+
+
+@torch.no_grad()
+def grid_changes(grid: nerfacc.OccGridEstimator, base: nerfacc.OccGridEstimator) -> dict:
+    """The cells where `grid` differs from `base` (same layout): flat indices as `occs` counts them, their
+    occupancies and their bits."""
+    occs, binaries = grid.occs, grid.binaries.reshape(-1)
+    changed = ((occs != base.occs) | (binaries != base.binaries.reshape(-1))).nonzero()[:, 0]
+    return dict(zip(GRID_CHANGES, (changed.int(), occs[changed], binaries[changed])))
+
+
+@torch.no_grad()
+def grid_with_changes(base: nerfacc.OccGridEstimator, changes: dict) -> Tuple[Tensor, Tensor]:
+    """(occs, binaries) of `base` with the saved changes (`grid_changes`) written over it."""
+    occs, binaries = base.occs.clone(), base.binaries.clone().reshape(-1)
+    cells = changes["changed_cells"].to(occs.device).long()
+    occs[cells] = changes["changed_occs"].to(occs)
+    binaries[cells] = changes["changed_binaries"].to(binaries)
+    return occs, binaries.reshape(base.binaries.shape)
