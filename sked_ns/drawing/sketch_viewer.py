@@ -49,6 +49,9 @@ CAPTURE_BEAT_SECONDS = 2.0
 CPU_PREVIEW_WIDTH = 160
 """On a CPU the captured view's picture is rendered this wide and upsampled: it is only the
 backdrop to click on (the mask keeps VIEW_WIDTH), and it costs about 1/10 of the rays."""
+CPU_RAYS_PER_CHUNK = 4096
+"""Rays a CPU renders at once: nerfacto's default chunk (32,768) holds several GB of samples per render, which a
+laptop (or the viewer's render beside a captured view) runs out of."""
 
 
 def load_base(run: Path, device: str, flag: str = "sked-sketch", data: Optional[Path] = None):
@@ -60,6 +63,9 @@ def load_base(run: Path, device: str, flag: str = "sked-sketch", data: Optional[
     with reading(f"{flag}: the base {run}", "Point at a trained run's folder or its config.yml, with the data "
                  "it was trained on where its config.yml says."):
         pipeline = load_pipeline(run, device, flag=flag, data=data)
+    if device == "cpu":  # the viewer's renders and each captured view go through the model in chunks this size
+        config = pipeline.model.config
+        config.eval_num_rays_per_chunk = min(config.eval_num_rays_per_chunk, CPU_RAYS_PER_CHUNK)
     return run, pipeline, sketch_frame(pipeline)
 
 
@@ -405,7 +411,9 @@ def entrypoint(argv: Optional[List[str]] = None) -> None:
     args.base = args.base if args.base is not None else args.load_config
     new_sketch_folder(args.out, "sked-sketch")
     viewer, _ = start_viewer(args.base, args.out, args.port, device, flag)
-    print(f"SKED sketching: open {viewer.viewer_info[0] if viewer.viewer_info else 'the viewer'} in a browser.")
+    where = viewer.viewer_info[0] if viewer.viewer_info else "The viewer is running"
+    print(f"SKED sketching: {where}; open it in a browser, sketch two or more views, and Save sketch set "
+          f"({args.out}).")
     try:
         while True:
             time.sleep(0.1)
