@@ -106,8 +106,9 @@ class SkedEdit:
     def warn_if_off_base(self) -> None:
         """Sketches drawn on another scene, or posed in another frame, meet in empty space: the edit would add content
         in the air and every check of the sketches alone passes. Warned when neither the edit box nor the space around
-        it (SKETCH_REACH of its size each side) holds any of the base's content."""
-        reach = SKETCH_REACH * (self.edit_box.max - self.edit_box.min)
+        it (SKETCH_REACH of its longest side each side) holds any of the base's content."""
+        # One length on every axis: a box the views bound tightly along one axis is no less near the content there.
+        reach = SKETCH_REACH * float(np.max(self.edit_box.max - self.edit_box.min))
         low, high = self.edit_box.min - reach, self.edit_box.max + reach
         if not self.base_content_near(low, high):
             warn(f"{self.config.sketches}: the sketches meet in empty space, with none of the base's content in or "

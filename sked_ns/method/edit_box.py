@@ -101,7 +101,7 @@ def check_view_baselines(views: Sequence[SketchView], quiet: bool = False) -> fl
     widest = max(float(np.degrees(np.arccos(abs(cosine)))) for cosine in cosines.values())
     message = (f"The sketch views' lines of sight are at most {widest:.1f} degrees apart ({', '.join(map(name, range(len(views))))}): "
                "they look along nearly the same line (from one side, or across from each other), so the edit's depth is "
-               "barely bounded and the edit box stretches towards the scene's bounds. Sketch from viewpoints at least "
+               "barely bounded and the edit box stretches far along that line. Sketch from viewpoints at least "
                f"{WIDE_BASELINE_DEG:g} degrees apart and as far from straight across from each other.")
     if widest < MIN_BASELINE_DEG:
         raise SkedUserError(message)
