@@ -143,6 +143,23 @@ def test_a_local_ngp_edit_saves_only_the_grid_cells_it_changed_and_renders_the_s
     assert torch.equal(loaded.occupancy_grid.occs, model.occupancy_grid.occs)
 
 
+def test_a_progressive_ngp_edit_marches_the_earlier_edits_grid(ngp_scene, ngp_edited, tmp_path):
+    """The earlier local edit saved its grid as changes to its base's: the next edit's base grid is that edit's
+    whole grid, and the next edit's own changes are rebuilt over it."""
+    config = edit_config(ngp_edited["run"], ngp_scene["data"], ngp_scene["sketches"], tmp_path, iterations=2,
+                         guidance_resolution=16, silhouette_resolution=16, steps_per_save=2)
+    config.progressive = True
+    trainer = run_edit(config)
+    model, earlier = trainer.pipeline.model.eval(), load_pipeline(ngp_edited["run"]).model
+    assert torch.equal(model.frozen_base.occupancy_grid.occs, earlier.occupancy_grid.occs)
+    assert torch.equal(model.frozen_base.occupancy_grid.binaries, earlier.occupancy_grid.binaries)
+    view = model.sketch_set.views[0]
+    assert torch.equal(render_base_at(model, view, 16)["rgb"], render_at(earlier, view, 16)["rgb"])
+    loaded = load_pipeline(trainer.base_dir).model
+    assert torch.equal(loaded.occupancy_grid.occs, model.occupancy_grid.occs)
+    assert torch.equal(render_at(loaded, view, 16)["rgb"], render_at(model, view, 16)["rgb"])
+
+
 def test_rendering_an_ngp_run_without_cuda_is_explained(ngp_scene):
     if torch.cuda.is_available():
         pytest.skip("this machine renders instant-ngp runs with nerfacc")
