@@ -10,9 +10,9 @@ ball over the fox's forehead, where a hat would go: `HAT` in the data frame of t
 found by projecting it onto the photos (its place is relative to the point the cameras look at). The masks are
 pinhole silhouettes of the ball on the photo's camera without its lens, as the viewer shows a view.
 
-`check` reads the set as an edit does (the data frame mapped by nerfstudio-data with each --center-method) and
-prints what the placement checks and the edit box say: the warnings the set gives, whether the box holds the
-ball, and where the point the cameras look at (the fox) lands in nerfstudio's frame.
+`check` reads the set as an edit of a nerfacto base does (the data frame mapped by nerfstudio-data with each
+--center-method) and prints what the placement checks and the edit box say: the warnings the set gives, whether the
+box holds the ball, and where the point the cameras look at (the fox) lands in nerfstudio's frame.
 
 `edit` runs `ns-train sked` of BASE towards the composite target (a cone in the edit box,
 `pipeline.model.guidance:reference --pipeline.model.guidance.primitive cone`) at a CPU's protocol (RESOLUTION px
@@ -75,8 +75,9 @@ def check(data: Path, sketches: Path) -> dict:
     """What the placement checks and the edit box say of the set, in the data frame and nerfstudio's."""
     from nerfstudio.cameras.camera_utils import focus_of_attention
     from nerfstudio.data.dataparsers.nerfstudio_dataparser import NerfstudioDataParserConfig
+    from nerfstudio.models.nerfacto import NerfactoModelConfig
 
-    from sked_ns.method.edit_box import compute_edit_box
+    from sked_ns.method.edit_box import compute_edit_box, content_bounds
     from sked_ns.sketches.placement import check_camera_placement
     from sked_ns.sketches.sketch_set import DataparserTransform
 
@@ -96,7 +97,7 @@ def check(data: Path, sketches: Path) -> dict:
             warnings.simplefilter("always")
             views = sketch_set.in_model_frame(transform).views
             check_camera_placement(views)
-            box = compute_edit_box(views, outputs.scene_box.aabb.numpy())
+            box = compute_edit_box(views, *content_bounds(NerfactoModelConfig(), outputs.scene_box.aabb.numpy()))
         held = float(box.contains(transform.points_to_model(on_hat)).double().mean())
         report[method] = {"warnings": [str(w.message) for w in caught],
                           "looked_at_in_model_frame": transform.points_to_model(looked_at).numpy().round(3).tolist(),
