@@ -1,6 +1,6 @@
 """What edits cost on disk: N edits of one base made into one output folder, as `ns-train sked` makes them.
 
-    python benchmarks/edit_disk.py [--edits 10] [--bases nerfacto-default,instant-ngp,splatfacto] [--workdir DIR]
+    python benchmarks/edit_disk.py [--edits 10] [--bases nerfacto-default,instant-ngp,splatfacto] [--fields local] [--workdir DIR]
 
 Each base is the demo scene fitted briefly at the method's own default size (nerfacto's hash table 2^19, as
 `ns-train nerfacto` builds it; instant-ngp's; the demo's splatfacto fit), since what an edit stores follows the
@@ -10,12 +10,14 @@ saved once at its end. Per edit: its checkpoint, its run folder (its copy of the
 many hard links name it, as a file system stores it). NeRF bases are edited both ways the edit can train
 (`--pipeline.model.nerf-edit-field`): "full-copy" (a trainable copy of the whole field, what earlier versions did)
 and "local" (the residual over the edit box). "without sharing" is the output folder with every link counted as its
-own file: what earlier versions wrote, each edit holding its own copy of the base's weights.
+own file: what earlier versions wrote, each edit holding its own copy of the base's weights. A run over some of the
+bases keeps the other bases' rows already in the output file.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import os
 from pathlib import Path
 from typing import Dict, List, Optional
@@ -54,11 +56,11 @@ def edit(base: Path, work: Path, output: Path, field: Optional[str]) -> Path:
         return run_edit(config).base_dir
 
 
-def measure_base(name: str, work: Path, edits: int) -> List[Dict]:
+def measure_base(name: str, work: Path, edits: int, fields: List[str]) -> List[Dict]:
     method = BASES[name]
     base = harness.demo_base(work, method, steps=BASE_STEPS, grid_passes=1)
     rows = []
-    for field in (("full-copy", "local") if method != "splatfacto" else (None,)):
+    for field in (fields if method != "splatfacto" else (None,)):
         output = work / "edits" / name / (field or "splat")
         runs, added, before = [], [], 0
         for _ in range(edits):
@@ -93,6 +95,7 @@ def main() -> None:
     parser.add_argument("--edits", type=int, default=10, help="edits of each base into one output folder")
     parser.add_argument("--bases", default=",".join(BASES), help=f"comma-separated, of {', '.join(BASES)}")
     parser.add_argument("--workdir", type=Path, default=None, help="kept, so a rerun reuses its bases")
+    parser.add_argument("--fields", default="full-copy,local", help="how NeRF edits train, comma-separated")
     parser.add_argument("--output", type=Path, default=harness.RESULTS / "edit_disk.json")
     args = parser.parse_args()
     unknown = set(args.bases.split(",")) - set(BASES)
@@ -100,11 +103,13 @@ def main() -> None:
         parser.error(f"--bases: one or more of {', '.join(BASES)}; --edits: at least 1")
     harness.claim("edit_disk.py", args.output, args.workdir)
     os.environ.setdefault("HF_HUB_OFFLINE", "1")
-    rows = []
+    measured = args.bases.split(",")
+    earlier = json.loads(args.output.read_text())["rows"] if args.output.exists() else []
+    rows = [row for row in earlier if row["base"] not in measured]
     with harness.work_folder(args.workdir) as work:
         harness.demo_scene(work, rewrite=False)
-        for name in args.bases.split(","):
-            rows += measure_base(name, work, args.edits)
+        for name in measured:
+            rows += measure_base(name, work, args.edits, args.fields.split(","))
     harness.write_results(args.output, {"iterations": ITERATIONS, "base_steps": BASE_STEPS, "rows": rows,
                                         "environment": harness.environment("cpu")})
     harness.report(table(rows), args.output)
