@@ -55,6 +55,17 @@ def sketch_views(model) -> dict:
     return {"views": rows, "mean": {key: sum(row[key] for row in rows) / len(rows) for key in rows[0] if key != "view"}}
 
 
+def composite_target(model, primitive, camera) -> dict:
+    """sked_ns.demo.composite_target's target at a photo's camera, keeping the frozen base's render whole ("base":
+    rgb and accumulation; the model in eval mode, as `render_camera` renders it), so the base renders once."""
+    from sked_ns.demo.composite_target import composite, render_base_with_depth
+
+    base = {key: value.cpu() for key, value in render_base_with_depth(model, camera).items()}
+    cast = primitive.cast(base["origins"].double(), base["directions"].double())
+    cast = {"hit": cast["hit"], "distance": cast["distance"].to(base["depth"]), "rgb": cast["rgb"].to(base["rgb"])}
+    return {**composite(base, cast), "base": base, "silhouette": cast["hit"]}
+
+
 def save_strip(tiles: list, path: Path) -> None:
     """Rows of (photo, base, edit, edit - base) tiles, one row a photo, as one PNG."""
     from PIL import Image
@@ -67,12 +78,13 @@ def save_strip(tiles: list, path: Path) -> None:
 def measure(edit: Path, photos: int = 0, strip: Optional[Path] = None, strip_photos: int = 3) -> dict:
     """The figures at the first `photos` held-out photos (0: all) and at the sketch views; `strip`: where the
     pictures of the first `strip_photos` go."""
-    from sked_ns.demo.composite_target import Primitive, composite_target
+    from sked_ns.demo.composite_target import Primitive
     from sked_ns.evaluation.metrics import psnr_inside, psnr_outside, ssim_outside
     from sked_ns.evaluation.render import load_pipeline, render_camera
 
     pipeline = load_pipeline(edit)
     model, dataset = pipeline.model, pipeline.datamanager.eval_dataset
+    model.eval()
     guidance = model.config.guidance
     if getattr(guidance, "primitive", "none") == "none":
         raise SystemExit(f"error: {edit}: not an edit towards the composite target (--pipeline.model.guidance.primitive)")
@@ -82,9 +94,10 @@ def measure(edit: Path, photos: int = 0, strip: Optional[Path] = None, strip_pho
     for index in range(len(dataset) if photos <= 0 else min(photos, len(dataset))):
         camera = dataset.cameras[index:index + 1]
         photo = dataset.get_image_float32(index)[..., :3]
-        renders = {flag: render_camera(model, camera, base=flag) for flag in (True, False)}
-        base, edited = renders[True]["rgb"], renders[False]["rgb"]
+        renders = {False: render_camera(model, camera)}
         target = composite_target(model, primitive, camera)
+        renders[True] = target["base"]
+        base, edited = renders[True]["rgb"], renders[False]["rgb"]
         silhouette = target["silhouette"].cpu().float()
         changed = (edited - base).abs().amax(dim=-1) > CHANGED
         expected = target["changed"].cpu()
