@@ -203,7 +203,7 @@ def census_of(work: Path, method: str, base: Path, args, proposal_update: bool =
         "field_chunk_at_resolution": None if getattr(model.config, "field_chunk", None) is None
         else int(model.config.field_chunk * ratio),
         "proposal_update": proposal_update if sampler is not None else None,
-        "model": type(model).__name__,
+        "model": type(model).__name__, "nerf_edit_field": getattr(model.config, "nerf_edit_field", None),
     }
     del trainer, model
     return entry
