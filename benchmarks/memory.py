@@ -118,7 +118,8 @@ def nerf_side(work: Path, method: str, base: Path, resolution: int, args, smalle
     model = trainer.pipeline.model
     nerf = hasattr(model.config, "field_chunk") and hasattr(model, "_render")
     settings = {"guidance_resolution": resolution, "silhouette_resolution": model.config.silhouette_resolution,
-                "field_chunk": model.config.field_chunk if nerf else None, "model": type(model).__name__}
+                "field_chunk": model.config.field_chunk if nerf else None, "model": type(model).__name__,
+                "nerf_edit_field": getattr(model.config, "nerf_edit_field", None)}  # the plan follows it
     for key in ("num_nerf_samples_per_ray", "num_proposal_samples_per_ray", "render_step_size"):
         if hasattr(model.config, key):
             settings[key] = model.config.__dict__[key]
