@@ -149,6 +149,7 @@ def test_an_edit_runs_on_the_capture_from_base_to_checkpoint_with_no_false_warni
     unexpected = [m for m in sked if not m.startswith(("--pipeline.model.guidance-resolution",
                                                        "--pipeline.model.silhouette-resolution"))]
     assert not unexpected, unexpected
+    assert len(sked) == len(set(sked)), sked  # each said once: the inputs' check, not again by the model's set-up
 
 
 def test_the_edit_renders_a_held_out_photo_through_its_lens(capture_edit, capture_data):
