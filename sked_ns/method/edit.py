@@ -113,8 +113,9 @@ class SkedEdit:
         if not self.base_content_near(low, high):
             warn(f"{self.config.sketches}: the sketches meet in empty space, with none of the base's content in or "
                  f"near their region (x, y, z from {np.round(self.edit_box.min, 3).tolist()} to "
-                 f"{np.round(self.edit_box.max, 3).tolist()}). Were they drawn on another scene, or are their poses "
-                 "in another frame? Look at them in the viewer (the edit box is shown) before a long edit.")
+                 f"{np.round(self.edit_box.max, 3).tolist()}). Were they drawn on another scene, are their poses in "
+                 "another frame, or is the base barely trained there? Look at them in the viewer (the edit box is "
+                 "shown) before a long edit.")
 
     def base_content_near(self, low: np.ndarray, high: np.ndarray) -> bool:
         """Whether the frozen base holds opaque content in the box [low, high] (model frame)."""
