@@ -99,7 +99,7 @@ def framed(config, nerfacto: Path):
 
 
 def fit_splat(data: Path, nerfacto: Path, output: Path, experiment: str, steps: int, gaussians: int,
-              cloud_points: int) -> dict:
+              cloud_points: int, refine_every: int = 40) -> dict:
     """The splatfacto base, seeded from the nerfacto base's exported cloud; returns the fit's figures."""
     import open3d
 
@@ -113,7 +113,7 @@ def fit_splat(data: Path, nerfacto: Path, output: Path, experiment: str, steps: 
     cloud = open3d.io.read_point_cloud(str(ply))
     points = torch.as_tensor(np.asarray(cloud.points), dtype=torch.float64)
     colours = torch.as_tensor(np.asarray(cloud.colors), dtype=torch.float32)
-    fit = SplatFit(steps=steps, num_gaussians=gaussians)
+    fit = SplatFit(steps=steps, num_gaussians=gaussians, refine_every=refine_every)
     plain = splat_base.splatfacto_config
     splat_base.splatfacto_config = lambda *args, **kwargs: framed(plain(*args, **kwargs), nerfacto)
     try:
@@ -137,6 +137,7 @@ def main(argv=None) -> None:
     splat.add_argument("--steps", type=int, default=300)
     splat.add_argument("--gaussians", type=int, default=8000)
     splat.add_argument("--cloud-points", type=int, default=20000)
+    splat.add_argument("--refine-every", type=int, default=40, help="densify every N steps (over --steps: never)")
     arguments = parser.parse_args(argv)
     if arguments.command == "eval":
         if arguments.output is not None:
@@ -145,7 +146,8 @@ def main(argv=None) -> None:
         harness.publish(evaluate(arguments.config, raw), arguments.output)
     else:
         print(json.dumps(fit_splat(arguments.data, arguments.nerfacto, arguments.output, arguments.experiment,
-                                   arguments.steps, arguments.gaussians, arguments.cloud_points), indent=2))
+                                   arguments.steps, arguments.gaussians, arguments.cloud_points,
+                                   arguments.refine_every), indent=2, default=str))
 
 
 if __name__ == "__main__":
