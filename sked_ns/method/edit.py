@@ -49,8 +49,8 @@ from sked_ns.sketches.data_frame import model_frame_sketches
 TINT = (1.0, 0.2, 0.2)
 """The viewer's tint where the edit may act."""
 SKETCH_REACH = 0.5
-"""How far around the edit box, as a share of its size, the base's content (warn_if_off_base) and the editable region
-past the scene box (editable_search_box) are looked for."""
+"""How far around the edit box the base's content is looked for (warn_if_off_base: a share of its longest side), and
+the editable region past the scene box (editable_search_box: a share of its size along each axis)."""
 
 
 @dataclasses.dataclass

@@ -202,3 +202,21 @@ def test_frusta_unbounded_without_a_box_are_bounded_by_the_scene_box_with_a_word
         with pytest.warns(UserWarning, match="unbounded region.*runs out to the scene's box"):
             box = compute_edit_box(wide, scene_box, bounded=bounded)
         assert (box.min >= -1 - 1e-9).all() and (box.max <= 1 + 1e-9).all()
+
+
+def test_the_base_s_content_is_looked_for_as_far_on_a_thin_axis_of_the_box_as_on_its_longest():
+    from types import SimpleNamespace
+
+    from sked_ns.method.edit import SkedEdit
+
+    looked = []
+    edit = SimpleNamespace(edit_box=EditBox(min=np.array([0.0, 0.0, 0.0]), max=np.array([0.4, 0.04, 0.04])),
+                           config=SimpleNamespace(sketches="hat"),
+                           base_content_near=lambda low, high: looked.append((low, high)) or len(looked) > 1)
+    with pytest.warns(UserWarning, match=r"^hat: the sketches meet in empty space.*barely trained"):
+        SkedEdit.warn_if_off_base(edit)
+    low, high = looked[0]
+    np.testing.assert_allclose(np.stack([low, high]), [[-0.2, -0.2, -0.2], [0.6, 0.24, 0.24]])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        SkedEdit.warn_if_off_base(edit)  # content found: nothing said
