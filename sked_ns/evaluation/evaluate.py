@@ -99,6 +99,10 @@ def _background(model) -> tuple:
     return tuple(float(c) for c in torch.as_tensor(colour).reshape(3))
 
 
+EVAL_SPLIT = "the base dataset's eval split"
+"""Where novel views are scored by default: the photos the base held out."""
+
+
 def choose_novel_views(pipeline, cameras: str, target: Optional[Path], resolution: int, max_views: int):
     """The cameras novel views are scored at: --target's, the eval split's, a transforms.json's, or an orbit."""
     model = pipeline.model
@@ -112,7 +116,7 @@ def choose_novel_views(pipeline, cameras: str, target: Optional[Path], resolutio
         views = novel_views.transforms_views(target, transform, resolution, background, True, nerfstudio_data)
         source = f"target {target}"
     elif cameras == "eval":
-        views, source = novel_views.eval_split_views(pipeline, resolution, background), "the base dataset's eval split"
+        views, source = novel_views.eval_split_views(pipeline, resolution, background), EVAL_SPLIT
     elif is_orbit(cameras):
         count = orbit_count(cameras)
         radius = float(np.mean([np.linalg.norm(v.camera_to_world[:, 3] - model.edit_box.center)
@@ -322,8 +326,9 @@ def novel_summary(novel: Dict) -> str:
     """One line of the novel-view means (what a user reads first)."""
     mean = novel["mean"]
     parts = [f"{len(novel['views'])} novel views ({novel['cameras']}):"]
+    truth = "photos" if novel["cameras"] == EVAL_SPLIT else "ground truth"
     for key, label, unit in (("psnr_keep", "PSNR kept", " dB"), ("ssim_keep", "SSIM kept", ""), ("leak", "leak", ""),
-                             ("psnr_keep_gt", "kept vs ground truth", " dB"),
+                             ("psnr_keep_gt", f"kept vs {truth}", " dB"), ("ssim_keep_gt", f"SSIM kept vs {truth}", ""),
                              ("psnr_target_changed", "changed vs target", " dB")):
         if key in mean:
             base = mean.get(key + "_base")

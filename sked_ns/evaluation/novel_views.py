@@ -14,8 +14,9 @@ neither the base nor the edit shows anything near the sketches there. Over the k
 - `psnr_keep`, `ssim_keep`: edit against base;
 - `leak`: mean of max(0, accumulation_edit - accumulation_base), new opacity where the edit may
   not act (floaters, haze); 0 for a perfect edit;
-- with ground-truth images (the evaluation split's photos, or `--target`): `psnr_keep_gt` and, for
-  the base, `psnr_keep_gt_base`;
+- with ground-truth images (the evaluation split's photos, or `--target`): `psnr_keep_gt`, `ssim_keep_gt` and,
+  for the base, `psnr_keep_gt_base`, `ssim_keep_gt_base` (for a capture: what the base itself misses of its
+  photos beside what the edit adds to that);
 - with `--target` (images of the intended result at the same cameras): PSNR against the target
   inside and outside the changed region (`psnr_target_changed`, `psnr_target_unchanged`, and the
   base's figures beside them). The changed region is each frame's `changed_mask_path` when given
@@ -318,6 +319,9 @@ def score_view(model, view: NovelView) -> Dict:
         if keep.any():
             entry["psnr_keep_gt"] = psnr_outside(edit["rgb"], truth, ~keep)
             entry["psnr_keep_gt_base"] = psnr_outside(base["rgb"], truth, ~keep)
+            if min(keep.shape) >= SSIM_MIN_SIDE:
+                entry["ssim_keep_gt"] = ssim_outside(edit["rgb"], truth, ~keep)
+                entry["ssim_keep_gt_base"] = ssim_outside(base["rgb"], truth, ~keep)
     return {"entry": entry, "edit": edit, "base": base, "keep": keep}
 
 

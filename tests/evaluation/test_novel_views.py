@@ -112,7 +112,8 @@ def test_sked_eval_scores_the_eval_split_and_a_target(small_edit, tmp_path):
     assert mean["ios_region_base"] < mean["ios_base"] and mean["ios_region"] > mean["ios_region_base"] + 0.3
     novel = metrics["novel_views"]
     assert novel["cameras"] == "the base dataset's eval split" and len(novel["views"]) >= 2
-    assert {"psnr_keep", "ssim_keep", "leak", "psnr_keep_gt", "psnr_keep_gt_base"} <= set(novel["mean"])
+    assert {"psnr_keep", "ssim_keep", "leak", "psnr_keep_gt", "psnr_keep_gt_base", "ssim_keep_gt",
+            "ssim_keep_gt_base"} <= set(novel["mean"])
     with_target = evaluate(small_edit["run"], resolution=32, novel_resolution=32,
                            target=write_target(tmp_path / "target"))["metrics"]["novel_views"]
     assert with_target["cameras"].startswith("target") and "psnr_target_changed_base" in with_target["mean"]
