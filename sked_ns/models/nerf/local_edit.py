@@ -41,7 +41,8 @@ class LocalEdit:
         if box is not None:
             low, high = np.minimum(low, box[:3].numpy()), np.maximum(high, box[3:].numpy())
         shape = local_grid_shape(self.field.mlp_base, base_grid_extent(self.field), high - low)
-        return LocalResidual(low, high, shape)
+        # g = 1 adds the density that is opaque (alpha 0.82) over the step the losses measure occupancy at.
+        return LocalResidual(low, high, shape, density_scale=1.0 / self.config.preservation_delta)
 
     # ---- what a checkpoint holds ---------------------------------------------------------------
     def _base_modules(self) -> List[torch.nn.Module]:

@@ -10,12 +10,14 @@ bounds the points with w <= keep_threshold (the edit box padded as the preservat
 
 with (d, g, r) a multiresolution hash grid in box coordinates and a small MLP whose last layer starts at zero, so
 m = 1, a = 0, r = 0: the edit starts as the base bit for bit. m carves (it takes the base's density to 0) and a adds
-mass in empty space, growing by a factor each step as nerfacto's own exp density does; s is a density per box
-diagonal. Scaled by 1 - w, the residual fades to nothing where the edit is held (w -> 1), so the edit meets the
-kept base without a seam and the band around the sketches changes only as far as it may. Outside the box every
-output is the base's (a `torch.where` on the in-box test, no data-dependent shape).
-Below 0 the clamp passes only gradients asking for more density, so emptied space can be filled again. The grid's resolution
-follows the box, not the scene (`local_grid_shape`); docs/method.md, Local edit, gives the rule and what it costs.
+mass in empty space, growing by a factor each step as nerfacto's own exp density does. s = 1 / delta, delta the
+step at which the edit's losses turn density into occupancy: g = 1 makes a sample opaque at that step, and a below
+0 empties what the base holds up to that density while m is still near 1. Scaled by 1 - w, the residual fades to
+nothing where the edit is held (w -> 1), so the edit meets the kept base without a seam and the band around the
+sketches changes only as far as it may. Outside the box every output is the base's (a `torch.where` on the in-box
+test, no data-dependent shape). Below 0 the clamp passes only gradients asking for more density, so emptied space
+can be filled again. The grid's resolution follows the box, not the scene (`local_grid_shape`); docs/method.md,
+Local edit, gives the rule and what it costs.
 """
 
 from __future__ import annotations
@@ -39,6 +41,8 @@ HIDDEN = 32
 """Width of the MLP head (nerfacto's proposal networks: 16)."""
 OUTPUTS = 5
 """d (density scale), g (added density), r (three colour logits)."""
+HASH_INIT_SCALE = 1.0
+"""The local grid's features start uniform in +-this (docs/method.md, Local edit: Rates)."""
 
 
 def local_grid_shape(base_encoding: torch.nn.Module, base_extent: float, box_size: np.ndarray) -> Dict[str, int]:
@@ -71,20 +75,20 @@ def base_grid_extent(field: torch.nn.Module) -> float:
 class LocalResidual(torch.nn.Module):
     """(d, g, r) over a box: a torch hash grid in box coordinates and an MLP head that starts at zero."""
 
-    def __init__(self, low: np.ndarray, high: np.ndarray, shape: Dict[str, int]) -> None:
+    def __init__(self, low: np.ndarray, high: np.ndarray, shape: Dict[str, int], density_scale: float) -> None:
         super().__init__()
         bounds = np.stack([np.asarray(low, dtype=np.float64), np.asarray(high, dtype=np.float64)])
         self.register_buffer("box", torch.as_tensor(bounds, dtype=torch.float32))
         self.shape = dict(shape)
-        # Features at +-0.1 (nerfacto's 1e-3): with the head's last layer at zero the grid's first gradient is that
-        # layer's, which its input's scale sets (as the colour residual).
-        self.encoding = FastHashEncoding(**shape, hash_init_scale=0.1, implementation="torch")
+        # Features at +-1 (nerfacto's 1e-3): the head's hidden units then differ across the box from the first step
+        # (the features outweigh its first layer's bias), so the residual moves where the losses ask, not evenly
+        # over the box; and with the last layer at zero the grid's first gradient is that layer's, set by this scale.
+        self.encoding = FastHashEncoding(**shape, hash_init_scale=HASH_INIT_SCALE, implementation="torch")
         self.head = torch.nn.Sequential(torch.nn.Linear(self.encoding.get_out_dim(), HIDDEN), torch.nn.ReLU(),
                                         torch.nn.Linear(HIDDEN, OUTPUTS))
         torch.nn.init.zeros_(self.head[-1].weight)
         torch.nn.init.zeros_(self.head[-1].bias)
-        diagonal = float(np.linalg.norm(bounds[1] - bounds[0]))
-        self.density_scale = 1.0 / max(diagonal, 1e-6)
+        self.density_scale = float(density_scale)
 
     def forward(self, positions: Tensor) -> Tuple[Tensor, Tensor]:
         """(inside (..., 1) bool, raw outputs (..., 5)) at model-frame positions (..., 3)."""
@@ -101,6 +105,7 @@ class LocalResidual(torch.nn.Module):
         sigma = base.float()
         scale = 1.0 + editable * (2.0 * torch.sigmoid(raw[..., 0:1]) - 1.0)
         total = sigma * scale + editable * (self.density_scale * torch.expm1(raw[..., 1:2]))
+        total = total.clamp_max(torch.finfo(base.dtype).max)  # finite in the base's precision (fp16 under autocast)
         return torch.where(inside, _FloorAtZero.apply(total), sigma).to(base.dtype)
 
     def colour(self, base: Tensor, inside: Tensor, raw: Tensor, editable: Tensor) -> Tensor:
