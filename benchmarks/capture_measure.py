@@ -24,7 +24,7 @@ from __future__ import annotations
 import argparse
 import sys
 from pathlib import Path
-from typing import Optional
+from typing import Optional, Sequence
 
 import harness
 import torch
@@ -75,9 +75,10 @@ def save_strip(tiles: list, path: Path) -> None:
     Image.fromarray((torch.cat(rows, dim=0).clamp(0, 1) * 255).round().byte().numpy()).save(path)
 
 
-def measure(edit: Path, photos: int = 0, strip: Optional[Path] = None, strip_photos: int = 3) -> dict:
-    """The figures at the first `photos` held-out photos (0: all) and at the sketch views; `strip`: where the
-    pictures of the first `strip_photos` go."""
+def measure(edit: Path, photos: int = 0, strip: Optional[Path] = None, strip_photos: int = 3,
+            indices: Optional[Sequence[int]] = None, sketch: bool = True) -> dict:
+    """The figures at the first `photos` held-out photos (0: all) or at those `indices`, and at the sketch views
+    unless not `sketch`; `strip`: where the pictures of the first `strip_photos` measured go."""
     from sked_ns.demo.composite_target import Primitive
     from sked_ns.evaluation.metrics import psnr_inside, psnr_outside, ssim_outside
     from sked_ns.evaluation.render import load_pipeline, render_camera
@@ -91,7 +92,9 @@ def measure(edit: Path, photos: int = 0, strip: Optional[Path] = None, strip_pho
     primitive = Primitive.in_edit_box(guidance.primitive, guidance.primitive_colour, guidance.primitive_centre,
                                       guidance.primitive_size, model.edit_box)
     rows, tiles = [], []
-    for index in range(len(dataset) if photos <= 0 else min(photos, len(dataset))):
+    if indices is None:
+        indices = range(len(dataset) if photos <= 0 else min(photos, len(dataset)))
+    for index in indices:
         camera = dataset.cameras[index:index + 1]
         photo = dataset.get_image_float32(index)[..., :3]
         renders = {False: render_camera(model, camera)}
@@ -128,7 +131,7 @@ def measure(edit: Path, photos: int = 0, strip: Optional[Path] = None, strip_pho
     if tiles:
         save_strip(tiles, strip)
     return {"edit": str(edit), "changed_threshold": CHANGED, "photos": rows, "mean": mean,
-            "sketch_views": sketch_views(model), **({"strip": str(strip)} if tiles else {})}
+            **({"sketch_views": sketch_views(model)} if sketch else {}), **({"strip": str(strip)} if tiles else {})}
 
 
 def main(argv=None) -> None:
@@ -137,11 +140,14 @@ def main(argv=None) -> None:
     parser.add_argument("--output", type=Path)
     parser.add_argument("--photos", type=int, default=0, help="measure at the first N held-out photos (0: all)")
     parser.add_argument("--strip", type=Path, help="a PNG of photo | base | edit | difference at three held-out photos")
+    parser.add_argument("--indices", type=int, nargs="+", help="measure at these held-out photos (their split's order)")
+    parser.add_argument("--no-sketch-views", action="store_true", help="leave the sketch views out")
     arguments = parser.parse_args(argv)
     if arguments.output is not None:  # the one writer of the results file, before the minutes of measuring
         harness.claim("capture_measure.py", arguments.output)
     with torch.no_grad():
-        result = measure(arguments.edit, arguments.photos, arguments.strip)
+        result = measure(arguments.edit, arguments.photos, arguments.strip, indices=arguments.indices,
+                         sketch=not arguments.no_sketch_views)
     harness.publish(result, arguments.output)
 
 
