@@ -158,6 +158,8 @@ class SkedNGPModel(SkedMixin, NGPModel):
         """instant-ngp's EMA update on the cells a local edit can change, each sampled at a random point: outside
         them the edit's density is the base's, and so is its grid."""
         grid, cells = self.occupancy_grid, self.edit_cells
+        if len(cells) == 0:  # a box outside every grid level: nothing the edit changes is marched
+            return
         boxes = grid.aabbs[cells // grid.cells_per_lvl]
         unit = (grid.grid_coords[cells % grid.cells_per_lvl] + torch.rand(len(cells), 3, device=cells.device)) / grid.resolution
         occupancy = self.held_density(boxes[:, :3] + unit * (boxes[:, 3:] - boxes[:, :3]))[..., 0] * self.config.render_step_size
