@@ -194,7 +194,7 @@ class SkedOptionError(SkedUserError):
     """A setting out of its legal range; the message names the flag as typed and what to pass."""
 
 
-class SkedOptionWarning(UserWarning):
+class SkedOptionWarning(SkedWarning):
     """A legal setting that almost surely defeats the edit."""
 
 

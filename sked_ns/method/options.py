@@ -13,6 +13,7 @@ from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import TYPE_CHECKING, ClassVar, Dict, FrozenSet, List, Literal, Optional
 
+from sked_ns.errors import SkedWarning
 from sked_ns.guidance import GuidanceChoice, StableDiffusionGuidanceConfig
 
 if TYPE_CHECKING:
@@ -199,7 +200,7 @@ def warn_degenerate_settings(config: SkedOptions, sketch_set: SketchSet) -> List
     return messages
 
 
-class SkedSettingsWarning(UserWarning):
+class SkedSettingsWarning(SkedWarning):
     """A setting that runs but defeats the method."""
 
 

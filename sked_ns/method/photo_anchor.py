@@ -22,6 +22,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from sked_ns.errors import SkedWarning
 from sked_ns.sketches.cameras import ray_aabb
 
 MIN_BASE_PHOTO_PSNR = 15.0
@@ -108,7 +109,7 @@ def check_base_explains_photos(predicted: Tensor, photos: Tensor) -> Tuple[float
     return psnr, True
 
 
-class SkedPhotoWarning(UserWarning):
+class SkedPhotoWarning(SkedWarning):
     """The base's photos do not match what it renders."""
 
 

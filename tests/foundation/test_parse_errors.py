@@ -298,3 +298,18 @@ def test_ns_train_of_a_misspelt_sked_method_says_the_method_meant_and_stock_miss
                                          "are sked, sked-fast, sked-quality; see ns-train --help for all)."], result.stderr
     stock = _ns_train("nerfactoo")
     assert stock.returncode == 2 and "error: ns-train" not in stock.stderr and "╭" in stock.stderr
+
+
+@pytest.mark.parametrize("method, one_line", [("sked", True), ("sked-fast", True), ("nerfacto", False)])
+def test_ns_train_sked_says_each_of_its_warnings_in_one_line_and_other_methods_keep_pythons(method, one_line):
+    script = ("import sys, warnings; sys.argv = ['ns-train', %r]; import sked_ns.session.methods; "
+              "from sked_ns.errors import SkedOptionWarning; from sked_ns.method.options import SkedSettingsWarning; "
+              "from sked_ns.method.photo_anchor import SkedPhotoWarning; "
+              "[warnings.warn('said ' + c.__name__, c) for c in (SkedOptionWarning, SkedSettingsWarning, SkedPhotoWarning)]")
+    result = subprocess.run([sys.executable, "-c", script % method], capture_output=True, text=True, timeout=300)
+    assert result.returncode == 0, result.stderr
+    said = [line for line in result.stderr.splitlines() if "said Sked" in line]
+    if one_line:
+        assert said == [f"warning: said {name}" for name in ("SkedOptionWarning", "SkedSettingsWarning", "SkedPhotoWarning")]
+    else:
+        assert len(said) == 3 and all("Warning: said" in line and not line.startswith("warning:") for line in said), said
