@@ -163,13 +163,19 @@ def test_the_edit_renders_a_held_out_photo_through_its_lens(capture_edit, captur
     assert torch.isfinite(outputs["rgb"]).all()
 
 
-def test_the_capture_measurement_reads_the_edit_at_its_held_out_photos(capture_edit):
+def test_the_capture_measurement_reads_the_edit_at_its_held_out_photos(capture_data, capture_edit):
     sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "benchmarks"))
     import capture_measure
 
-    result = capture_measure.measure(capture_edit["run"])
+    strip = capture_edit["run"].parent / "strip.png"
+    result = capture_measure.measure(capture_edit["run"], strip=strip)
     assert len(result["photos"]) == 1  # nerfstudio's eval split of 12 photos
     row = result["photos"][0]
+    assert 0 <= row["leak"] < 0.2 and 0 <= row["changed_outside_share"] < 0.2  # two steps leave most of it be
+    sketch_views = result["sketch_views"]["views"]
+    assert len(sketch_views) == 2 and all(0 <= view["ios_region"] <= 1 for view in sketch_views)
+    meta = json.loads((capture_data["data"] / "transforms.json").read_text())
+    assert cv2.imread(str(strip)).shape == (meta["h"], 4 * meta["w"], 3)  # photo | base | edit | difference
     assert row["photo"].startswith("frame_") and row["composite_changed_pixels"] > 0
     assert row["kept_difference_db"] == pytest.approx(row["edit_psnr_photo"] - row["base_psnr_photo"])
     assert 5 < row["base_psnr_photo"] < 60 and 0 < row["edit_ssim_photo"] <= 1
