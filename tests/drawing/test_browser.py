@@ -17,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 import yaml
 from session_helpers import free_port, wait_for
 
@@ -109,12 +110,73 @@ def test_sketch_panel_in_a_real_browser(scene, tmp_path):
     assert (ARTIFACTS / "sked_sketch_panel.png").stat().st_size > 10_000
 
 
-def _draw_view(page, server, panel, position, square) -> None:
-    """Move the browser's camera to `position` (viser units) looking at the origin, capture the view, click the
+@pytest.fixture(scope="module")
+def bust(tmp_path_factory):
+    """The capture-like scene (lens, portrait photos on a hand-held arc, a wall behind) and a tiny base of it."""
+    from sked_ns.demo.base import build_demo_base
+    from sked_ns.demo.scenes import capture
+    from sked_ns.demo.scenes.objects import union
+
+    root = tmp_path_factory.mktemp("bust")
+    written = capture.write_benchmark("bust", root, count=12, height=48, sketch_size=48)
+    base = build_demo_base(written["data"], root / "runs", steps=60, points_per_step=2048,
+                           sdf=union(capture.SCENES["bust"].base_parts)[0])
+    return {**written, "base": base}
+
+
+def test_sketch_panel_on_a_capture_saves_the_set_where_the_photos_were_taken(bust, tmp_path):
+    """A user's sketch set on a capture's base: two views drawn in the browser from the capture's own sketch
+    cameras, aimed at where its hat goes. The saved set is in the data frame (the poses of transforms.json): its
+    cameras stand where the capture's sketch cameras stand and its sketches meet at the hat, with no placement
+    warning for views on the arc."""
+    import warnings
+
+    chromium = _chromium()
+    from nerfstudio.viewer.viewer import VISER_NERFSTUDIO_SCALE_RATIO as SCALE
+
+    from sked_ns.drawing.sketch_viewer import start_viewer, stop_viewer
+    from sked_ns.method.edit_box import compute_edit_box
+    from sked_ns.sketches.placement import check_camera_placement, meeting_point
+
+    wanted = load_sketch_set(bust["sketches"])  # data frame, as write_benchmark's viewer-drawn views
+    hat = meeting_point(wanted.views)
+    out = tmp_path / "sketches"
+    port = free_port()
+    viewer, panel = start_viewer(bust["base"], out, port=port)
+    model = wanted.in_model_frame(panel.session.transform)
+    aim = meeting_point(model.views) * SCALE
+    try:
+        with _page(chromium, port, 900, 750) as page:
+            page.get_by_role("button", name="Capture view").wait_for(timeout=120_000)
+            try:
+                for view in model.views:
+                    _draw_view(page, viewer.viser_server, panel, tuple(view.camera_to_world[:, 3] * SCALE),
+                               (0.45, 0.45, 0.55, 0.55), look_at=tuple(aim))
+            except Exception:
+                page.screenshot(path=str(ARTIFACTS / "sked_sketch_capture_failure.png"))
+                raise
+            page.get_by_role("button", name="Save sketch set").click()
+            wait_for(lambda: (out / "sketches.json").exists(), "the saved sketch set", panel=panel)
+    finally:
+        stop_viewer(viewer)
+    drawn = load_sketch_set(out)
+    assert drawn.frame == "data" and len(drawn.views) == 2
+    distance = np.linalg.norm(wanted.views[0].camera_to_world[:, 3] - hat)
+    for got, view in zip(drawn.views, wanted.views):
+        assert np.linalg.norm(got.camera_to_world[:, 3] - view.camera_to_world[:, 3]) < 0.01 * distance
+    assert np.linalg.norm(meeting_point(drawn.views) - hat) < 0.05 * distance
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        check_camera_placement(drawn.views)
+        assert compute_edit_box(drawn.views).contains(torch.tensor(hat[None])).all()
+
+
+def _draw_view(page, server, panel, position, square, look_at=(0.0, 0.0, 0.0)) -> None:
+    """Move the browser's camera to `position` (viser units) looking at `look_at`, capture the view, click the
     corners of `square` ((x0, y0, x1, y1) as fractions of the canvas), close the outline and add the view."""
     client = wait_for(lambda: next(iter(server.get_clients().values()), None), "the browser to connect")
     client.camera.position = position
-    client.camera.look_at = (0.0, 0.0, 0.0)
+    client.camera.look_at = look_at
     time.sleep(1.0)
     page.get_by_role("button", name="Capture view").click()  # pressed again while it renders it would be ignored
     wait_for(lambda: panel.session.pending is not None, "the captured view", timeout=300, panel=panel)
@@ -139,7 +201,7 @@ def _draw_view(page, server, panel, position, square) -> None:
     from sked_ns.engine.viewer import STEP_BACK
 
     distance = np.linalg.norm(np.asarray(client.camera.position) - np.asarray(client.camera.look_at))
-    assert distance == pytest.approx(STEP_BACK * np.linalg.norm(position), rel=0.05)
+    assert distance == pytest.approx(STEP_BACK * np.linalg.norm(np.subtract(position, look_at)), rel=0.05)
 
 
 def _opens_framed_and_moves_as_dragged(page, viewer) -> None:
