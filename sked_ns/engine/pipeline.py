@@ -26,6 +26,7 @@ from sked_ns.guide import guide
 from sked_ns.method.options import is_carving
 from sked_ns.models.nerf.nerfacto import SkedNerfactoModelConfig
 from sked_ns.models.registry import renders_cameras
+from sked_ns.sketches.placement import warn_views_off_photos
 
 
 @dataclass
@@ -68,6 +69,10 @@ class SkedPipeline(VanillaPipeline):
         self._guidance_ready = False
         if test_mode == "val":  # an edit about to train (not one loaded to render)
             self.model.warn_if_off_base()
+            photos = getattr(self.datamanager, "train_dataset", None)
+            if photos is not None:
+                warn_views_off_photos(self.model.sketch_set.views, photos.cameras.camera_to_worlds[:, :3, 3].cpu().numpy(),
+                                      self.model.edit_box.center, str(config.model.sketches))
 
     def prepare_guidance(self) -> None:
         """Load the guidance once, just before the first training step (never for export)."""

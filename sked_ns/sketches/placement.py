@@ -16,7 +16,7 @@ import numpy as np
 import torch
 from scipy.optimize import linprog
 
-from sked_ns.errors import SkedUserError
+from sked_ns.errors import SkedUserError, warn
 from sked_ns.sketches.cameras import pixel_directions, project
 from sked_ns.sketches.sketch_set import SketchView
 
@@ -164,3 +164,39 @@ def check_camera_placement(views: Sequence[SketchView], where: str = "") -> None
             f"of {_it(len(faced))}. Turn {_it(len(faced))} towards the region, or move {_it(len(faced))} out of the "
             "region to look at it from outside; "
             f"check that {OPENGL_HINT}.")
+
+
+PHOTO_REACH_DEG = 60.0
+"""A sketch view further than this from every photo, as seen from the sketched region, looks at a side of it no photo
+saw: a base reconstructed from photos holds floaters or nothing there (a capture's photos span an arc)."""
+
+
+def views_off_photos(views: Sequence[SketchView], photo_origins: np.ndarray, centre: np.ndarray,
+                     limit_deg: float = PHOTO_REACH_DEG) -> List[Tuple[int, float]]:
+    """(index, degrees to the nearest photo) of each view whose camera is more than `limit_deg` from every photo's
+    camera, the angles taken at `centre` (the sketched region's)."""
+    def unit(points: np.ndarray) -> np.ndarray:
+        offsets = np.asarray(points, dtype=np.float64).reshape(-1, 3) - np.asarray(centre, dtype=np.float64)
+        return offsets / np.maximum(np.linalg.norm(offsets, axis=1, keepdims=True), 1e-12)
+
+    photos = unit(photo_origins)
+    if len(photos) == 0:
+        return []
+    off = []
+    for index, view in enumerate(views):
+        nearest = float(np.degrees(np.arccos(np.clip(photos @ unit(view.camera_to_world[:, 3])[0], -1.0, 1.0)).min()))
+        if nearest > limit_deg:
+            off.append((index, nearest))
+    return off
+
+
+def warn_views_off_photos(views: Sequence[SketchView], photo_origins: np.ndarray, centre: np.ndarray,
+                          where: str = "") -> None:
+    """One warning naming the sketch views no photo looked from (views_off_photos)."""
+    off = views_off_photos(views, photo_origins, centre)
+    if off:
+        named = ", ".join(f"{view_label(views, i)} ({angle:.0f} degrees)" for i, angle in off)
+        warn(f"{where + ': ' if where else ''}{named}: {'this view looks' if len(off) == 1 else 'these views look'} at "
+             f"the sketched region from further than {PHOTO_REACH_DEG:.0f} degrees from every photo of the base, from a "
+             "side no photo saw, where the base holds floaters or nothing. Sketch from viewpoints among the photos "
+             "(the viewer shows their cameras).")

@@ -88,3 +88,20 @@ def test_the_frame_advice_when_followed_passes(tmp_path):
     with pytest.raises(ValueError, match=r'Set "frame": "data"'):
         _run(tmp_path / "set", "model")
     assert _run(tmp_path / "set", "data").contains(torch.tensor([HAT_IN_MODEL])).all()
+
+
+def test_a_sketch_view_no_photo_looked_from_is_warned_and_views_among_the_photos_are_not():
+    from sked_ns.sketches.placement import PHOTO_REACH_DEG, views_off_photos, warn_views_off_photos
+
+    first, second = scene.demo_sketch_set(size=64).views
+    centre = np.zeros(3)
+    arc = np.stack([scene.orbit_pose(azimuth, 0.0, 2.4)[:3, 3] for azimuth in range(-60, 61, 10)])  # photos on an arc
+    on_arc = [_at(first, scene.orbit_pose(-30.0, 25.0, 2.4)[:3, 3]), _at(second, scene.orbit_pose(40.0, 15.0, 2.4)[:3, 3])]
+    assert views_off_photos(on_arc, arc, centre) == []
+    behind = _at(second, scene.orbit_pose(180.0, 0.0, 2.4)[:3, 3])  # opposite the arc's middle: 120 degrees from its ends
+    off = views_off_photos([on_arc[0], behind], arc, centre)
+    assert [index for index, _ in off] == [1] and off[0][1] == pytest.approx(120.0, abs=0.5)
+    assert off[0][1] > PHOTO_REACH_DEG
+    with pytest.warns(SkedWarning, match=r"sketches.json: .*\(120 degrees\): this view looks at the sketched region"):
+        warn_views_off_photos([on_arc[0], behind], arc, centre, "sketches.json")
+    assert views_off_photos(on_arc, np.zeros((0, 3)), centre) == []  # no photos: nothing to say
