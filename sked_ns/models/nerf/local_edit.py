@@ -41,8 +41,8 @@ class LocalEdit:
         if box is not None:
             low, high = np.minimum(low, box[:3].numpy()), np.maximum(high, box[3:].numpy())
         shape = local_grid_shape(self.field.mlp_base, base_grid_extent(self.field), high - low)
-        # g = 1 adds the density that is opaque (alpha 0.82) over the step the losses measure occupancy at.
-        return LocalResidual(low, high, shape, density_scale=1.0 / self.config.preservation_delta)
+        # A density per box diagonal: larger scales fill faster but haze the box (docs/method.md, Local edit).
+        return LocalResidual(low, high, shape, density_scale=1.0 / max(float(np.linalg.norm(high - low)), 1e-6))
 
     # ---- what a checkpoint holds ---------------------------------------------------------------
     def _base_modules(self) -> List[torch.nn.Module]:

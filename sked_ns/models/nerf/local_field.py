@@ -10,9 +10,8 @@ bounds the points with w <= keep_threshold (the edit box padded as the preservat
 
 with (d, g, r) a multiresolution hash grid in box coordinates and a small MLP whose last layer starts at zero, so
 m = 1, a = 0, r = 0: the edit starts as the base bit for bit. m carves (it takes the base's density to 0) and a adds
-mass in empty space, growing by a factor each step as nerfacto's own exp density does. s = 1 / delta, delta the
-step at which the edit's losses turn density into occupancy: g = 1 makes a sample opaque at that step, and a below
-0 empties what the base holds up to that density while m is still near 1. Scaled by 1 - w, the residual fades to
+mass in empty space, growing by a factor each step as nerfacto's own exp density does; s is a density per box
+diagonal (the caller's choice; docs/method.md, Local edit, says why this one). Scaled by 1 - w, the residual fades to
 nothing where the edit is held (w -> 1), so the edit meets the kept base without a seam and the band around the
 sketches changes only as far as it may. Outside the box every output is the base's (a `torch.where` on the in-box
 test, no data-dependent shape). Below 0 the clamp passes only gradients asking for more density, so emptied space
@@ -41,7 +40,7 @@ HIDDEN = 32
 """Width of the MLP head (nerfacto's proposal networks: 16)."""
 OUTPUTS = 5
 """d (density scale), g (added density), r (three colour logits)."""
-HASH_INIT_SCALE = 1.0
+HASH_INIT_SCALE = 0.1
 """The local grid's features start uniform in +-this (docs/method.md, Local edit: Rates)."""
 
 
@@ -80,9 +79,8 @@ class LocalResidual(torch.nn.Module):
         bounds = np.stack([np.asarray(low, dtype=np.float64), np.asarray(high, dtype=np.float64)])
         self.register_buffer("box", torch.as_tensor(bounds, dtype=torch.float32))
         self.shape = dict(shape)
-        # Features at +-1 (nerfacto's 1e-3): the head's hidden units then differ across the box from the first step
-        # (the features outweigh its first layer's bias), so the residual moves where the losses ask, not evenly
-        # over the box; and with the last layer at zero the grid's first gradient is that layer's, set by this scale.
+        # Features at +-0.1 (nerfacto's 1e-3): with the head's last layer at zero the grid's first gradient is that
+        # layer's, which its input's scale sets (as the colour residual). At +-1 the box filled faster but hazier.
         self.encoding = FastHashEncoding(**shape, hash_init_scale=HASH_INIT_SCALE, implementation="torch")
         self.head = torch.nn.Sequential(torch.nn.Linear(self.encoding.get_out_dim(), HIDDEN), torch.nn.ReLU(),
                                         torch.nn.Linear(HIDDEN, OUTPUTS))
