@@ -23,6 +23,7 @@ from scipy.optimize import linprog
 from torch import Tensor
 
 from sked_ns.errors import SkedUserError, warn
+from sked_ns.guide import guide
 from sked_ns.sketches.placement import (
     check_camera_placement,
     frusta_meet,
@@ -208,7 +209,7 @@ def warn_clipped(whole, clipped, scene_box: np.ndarray) -> None:
     warn(f"The sketched region reaches past the scene's box ({low} to {high}), which this base cannot hold content "
          f"beyond: the edit box is clipped to it, {100 * cut.max():.0f}% of its size cut off along "
          f"{'xyz'[int(cut.argmax())]}. For a capture, train the base centred on the object (`nerfstudio-data "
-         "--center-method focus`, docs/captures.md) and edit it with the same flag.")
+         f"--center-method focus`, {guide('captures.md')}) and edit it with the same flag.")
 
 
 def occupancy_grid_mask(
