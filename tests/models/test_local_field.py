@@ -112,6 +112,18 @@ def test_the_edited_density_stays_finite_in_half_precision():
     assert density.dtype == torch.float16 and density.isfinite().all()
 
 
+@pytest.mark.parametrize("g", [15.0, 100.0, 1e4])
+def test_a_runaway_g_gives_finite_density_and_gradient_where_the_edit_is_held(g):
+    residual, points = _residual(), _points(64)
+    inside, raw = residual(points)
+    raw = torch.full_like(raw, g).requires_grad_(True)  # exp(g) past float32's range for the larger ones
+    editable = torch.zeros(len(points), 1)  # w = 1: 0 x exp(g) must not be NaN
+    editable[::2] = 1.0
+    density = residual.density(torch.rand(len(points), 1) * 50.0, inside, raw, editable)
+    density.sum().backward()
+    assert density.isfinite().all() and raw.grad.isfinite().all()
+
+
 def test_carved_space_can_be_filled_again():
     points = torch.rand(256, 3, generator=torch.Generator().manual_seed(4)) - 0.5
     residual, base = _residual(), torch.full((len(points), 1), 5.0)

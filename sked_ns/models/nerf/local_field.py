@@ -42,6 +42,9 @@ OUTPUTS = 5
 """d (density scale), g (added density), r (three colour logits)."""
 HASH_INIT_SCALE = 0.1
 """The local grid's features start uniform in +-this (docs/method.md, Local edit: Rates)."""
+GROWTH_CAP = 15.0
+"""g's ceiling in a = s (exp(g) - 1): s e^15 is opaque over any step, and exp(g) past float32's range is inf, whose
+product with a kept point's 1 - w = 0 is NaN (as nerfacto's trunc_exp caps its own)."""
 
 
 def local_grid_shape(base_encoding: torch.nn.Module, base_extent: float, box_size: np.ndarray) -> Dict[str, int]:
@@ -102,7 +105,7 @@ class LocalResidual(torch.nn.Module):
         the box."""
         sigma = base.float()
         scale = 1.0 + editable * (2.0 * torch.sigmoid(raw[..., 0:1]) - 1.0)
-        total = sigma * scale + editable * (self.density_scale * torch.expm1(raw[..., 1:2]))
+        total = sigma * scale + editable * (self.density_scale * torch.expm1(raw[..., 1:2].clamp_max(GROWTH_CAP)))
         total = total.clamp_max(torch.finfo(base.dtype).max)  # finite in the base's precision (fp16 under autocast)
         return torch.where(inside, _FloorAtZero.apply(total), sigma).to(base.dtype)
 
