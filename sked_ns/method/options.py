@@ -118,11 +118,11 @@ class SkedOptions:
     base's density and colour (held_field.py; the editable field is trained only at the others), and splat bases'
     Gaussians whose centre's weight is above it are never optimised, densified, pruned or reset. The rest is held to
     the base by L_pres. 1 holds nothing exactly: the paper's soft L_pres alone."""
-    nerf_edit_field: Literal["local", "full-copy"] = "local"
-    """NeRF bases: what the edit trains. "local": a residual on the frozen base over the box the edit may change
-    (models/nerf/local_field.py), at a resolution that follows the box; the base's modules are neither trained nor
-    saved with the edit. "full-copy": a trainable copy of the whole field and proposal networks (the paper's model;
-    edits saved by 0.7 and earlier are read as such)."""
+    nerf_edit_field: Literal["local", "full-copy"] = "full-copy"
+    """NeRF bases: what the edit trains. "full-copy": a trainable copy of the whole field and proposal networks (the
+    paper's model). "local": a residual on the frozen base over the box the edit may change (models/nerf/
+    local_field.py), a checkpoint a twentieth of the copy's, but it fills thin or tall parts more slowly (docs/
+    benchmarks.md, Edit quality), so it is not yet the default. An edit resumes and loads as it was saved."""
     # Gaussian-splat bases only (models/splat/model.py); here so `ns-train sked` can parse them for any base.
     num_seeds: int = 3000
     """Splats: new Gaussians seeded inside the sketches' visual hull for new content (none when carving), each as wide
@@ -213,6 +213,8 @@ def copy_base_architecture(target: SkedOptions, base_model_config) -> None:
             setattr(target, name, copy.deepcopy(getattr(base_model_config, name)))
     cameras = getattr(base_model_config, "camera_optimizer", None)
     target.base_camera_optimizer = getattr(cameras, "mode", "off") if cameras is not None else "off"
+    if getattr(base_model_config, "nerf_edit_field", None) == "local":  # a local edit as the base (progressive):
+        target.nerf_edit_field = "local"  # it saved its changes alone, so there is no whole field to copy
 
 
 def taken_from_the_base(config_class: type, base_class: type) -> None:

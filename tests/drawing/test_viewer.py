@@ -131,8 +131,9 @@ def test_steering_controls_change_what_the_viewer_shows(scene, tmp_path):
     config = edit_config(scene["base"], scene["data"], scene["sketches"], tmp_path, iterations=2)
     resolve_edit(config)
     model = config.pipeline.setup(device="cpu", test_mode="val").model
-    with torch.no_grad():  # make the edit differ from the base: the residual's colour moved
-        model.local_field.head[-1].bias[2:].add_(2.0)
+    with torch.no_grad():  # make the edit differ from the base
+        for parameter in model.field.mlp_head.parameters():
+            parameter.add_(0.5)
     view = model.sketch_set.views[0]
     edit, base = render_at(model, view, 24), render_base_at(model, view, 24)
     assert (edit["rgb"] - base["rgb"]).abs().max() > 0.05

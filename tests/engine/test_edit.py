@@ -38,6 +38,7 @@ def edited(scene):
     config = edit_config(scene["base"] / "nerfstudio_models", scene["data"], scene["sketches"],
                          scene["root"] / "edits", iterations=ITERATIONS, guidance_resolution=24,
                          silhouette_resolution=24, steps_per_save=20)
+    config.pipeline.model.nerf_edit_field = "local"  # the residual alone in its checkpoint; the default is below
     trainer = run_edit(config)
     return {"trainer": trainer, "run": trainer.base_dir, "base_digest_before": before}
 
@@ -64,6 +65,21 @@ def test_edit_fills_the_sketch_and_keeps_the_rest(scene, edited):
         assert view["ios_edit"] > 0.7 and view["ios_edit"] > view["ios_base"] + 0.4, view
         # Outside the sketches the edit renders like the base (the paper reports 27.5 dB on average).
         assert view["psnr_outside"] > 25.0, view
+
+
+def test_default_edit_trains_a_copy_of_the_field_and_fills_the_sketch(scene, tmp_path):
+    config = edit_config(scene["base"], scene["data"], scene["sketches"], tmp_path, iterations=ITERATIONS,
+                         guidance_resolution=24, silhouette_resolution=24, steps_per_save=ITERATIONS)
+    assert config.pipeline.model.nerf_edit_field == "full-copy"
+    run = run_edit(config).base_dir
+    for view in _sketch_metrics(load_pipeline(run), load_pipeline(scene["base"]), scene["sketches"]):
+        assert view["ios_edit"] > 0.7 and view["ios_edit"] > view["ios_base"] + 0.4, view
+        assert view["psnr_outside"] > 25.0, view
+    checkpoint = torch.load(sorted((run / "nerfstudio_models").glob("*.ckpt"))[-1], map_location="cpu")
+    top_level = {key.split(".")[1] for key in checkpoint["pipeline"] if key.startswith("_model.")}
+    # The edit's own field, proposals and colour residual; never the frozen base or a guidance weight.
+    assert {"field", "proposal_networks", "colour_residual"} <= top_level <= {
+        "field", "proposal_networks", "colour_residual", "camera_optimizer", "device_indicator_param", "_extra_state"}
 
 
 def test_base_files_untouched_and_base_field_frozen(scene, edited):
@@ -185,6 +201,7 @@ def test_progressive_edit_uses_the_edit_as_base(scene, edited, tmp_path):
     resolve_edit(config)
     assert config.load_dir is None
     assert config.pipeline.model.base_checkpoint.parent == edited["run"] / "nerfstudio_models"
+    assert config.pipeline.model.nerf_edit_field == "local"  # a local base has no whole field to copy
     pipeline = config.pipeline.setup(device="cpu", test_mode="val")
     # The earlier edit saved its residual alone: the new edit's frozen base is that edit, rendering as it does.
     view = pipeline.model.sketch_set.views[0]
@@ -320,7 +337,7 @@ def test_nan_loss_skips_the_step_and_never_saves_nan(scene, tmp_path, monkeypatc
     config.set_timestamp()
     trainer = config.setup(local_rank=0, world_size=1)
     trainer.setup()
-    trained = trainer.pipeline.model.local_field  # what the edit trains
+    trained = trainer.pipeline.model.field  # what the default edit trains
     before = {k: v.clone() for k, v in trained.state_dict().items()}
     original = trainer.pipeline.model.get_sked_loss_dict
 

@@ -25,6 +25,7 @@ def ngp_edited(ngp_scene):
     before = file_digests(ngp_scene["base"])
     config = edit_config(ngp_scene["base"], ngp_scene["data"], ngp_scene["sketches"], ngp_scene["root"] / "ngp-edits",
                          iterations=ITERATIONS, guidance_resolution=24, silhouette_resolution=24, steps_per_save=30)
+    config.pipeline.model.nerf_edit_field = "local"  # its saved grid cells are tested below
     trainer = run_edit(config)
     return {"trainer": trainer, "run": trainer.base_dir, "base_digest_before": before}
 
@@ -121,7 +122,7 @@ def test_ngp_edit_outputs_preservation_weight_and_resumes(ngp_scene, ngp_edited,
 
 def test_a_local_ngp_edit_saves_only_the_grid_cells_it_changed_and_renders_the_same_loaded(ngp_edited):
     model = ngp_edited["trainer"].pipeline.model.eval()
-    assert model.local_field is not None, "the default edit is local"
+    assert model.local_field is not None
     (checkpoint,) = sorted((ngp_edited["run"] / "nerfstudio_models").glob("step-*.ckpt"))[-1:]
     saved = torch.load(checkpoint, map_location="cpu", weights_only=False)["pipeline"]
     assert not [key for key in saved if key.endswith(("occupancy_grid.occs", "occupancy_grid.binaries"))]
