@@ -607,6 +607,11 @@ def test_a_splat_base_s_content_is_its_opaque_gaussians_in_the_box():
         model = SimpleNamespace(frozen_gaussians={"means": means,
                                                   "opacities": torch.logit(torch.tensor([[opacity], [opacity]]))})
         assert SkedSplatModel.base_content_near(model, np.full(3, low), np.full(3, high)) is expected
+    # Many faint Gaussians (a briefly fitted base): content once they hold one opaque Gaussian's worth.
+    for count, expected in ((12, True), (4, False)):
+        model = SimpleNamespace(frozen_gaussians={"means": torch.zeros(count, 3),
+                                                  "opacities": torch.logit(torch.full((count, 1), 0.1))})
+        assert SkedSplatModel.base_content_near(model, np.full(3, -0.1), np.full(3, 0.1)) is expected
 
 
 def test_an_edit_is_filed_under_its_base_s_experiment(scene, tmp_path):

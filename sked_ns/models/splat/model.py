@@ -153,11 +153,12 @@ class SkedSplatModel(SkedEdit, SplatfactoModel):
 
     @torch.no_grad()
     def base_content_near(self, low: np.ndarray, high: np.ndarray) -> bool:
-        """A base Gaussian more opaque than a half has its centre in the box."""
+        """A base Gaussian more opaque than a half, or faint ones holding as much opacity as one fully opaque, have
+        their centres in the box (a briefly fitted base is all faint Gaussians: splatfacto starts them at 0.1)."""
         means = self.frozen_gaussians["means"]
         inside = in_box(means, torch.as_tensor(np.stack([low, high]), dtype=means.dtype, device=means.device))
-        opaque = torch.sigmoid(self.frozen_gaussians["opacities"]).reshape(-1) > 0.5
-        return bool((inside & opaque).any())
+        opacity = torch.sigmoid(self.frozen_gaussians["opacities"]).reshape(-1) * inside
+        return bool(opacity.numel()) and bool((opacity.max() > 0.5) | (opacity.sum() >= 1.0))
 
     def _read_base(self) -> Dict[str, Tensor]:
         if self.config.base_checkpoint is None:
