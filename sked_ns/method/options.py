@@ -120,9 +120,10 @@ class SkedOptions:
     the base by L_pres. 1 holds nothing exactly: the paper's soft L_pres alone."""
     nerf_edit_field: Literal["local", "full-copy"] = "full-copy"
     """NeRF bases: what the edit trains. "full-copy": a trainable copy of the whole field and proposal networks (the
-    paper's model). "local": a residual on the frozen base over the box the edit may change (models/nerf/
-    local_field.py), a checkpoint a twentieth of the copy's, but it fills thin or tall parts more slowly (docs/
-    benchmarks.md, Edit quality), so it is not yet the default. An edit resumes and loads as it was saved."""
+    paper's model). "local": a residual on the frozen base over the box the edit may change
+    (models/nerf/local_field.py), whose checkpoint holds that residual alone, but it fills thin or tall parts more
+    slowly (docs/benchmarks.md, Edit quality), so it is not yet the default; an edit of a local edit is local too.
+    An edit resumes and loads as it was saved."""
     # Gaussian-splat bases only (models/splat/model.py); here so `ns-train sked` can parse them for any base.
     num_seeds: int = 3000
     """Splats: new Gaussians seeded inside the sketches' visual hull for new content (none when carving), each as wide

@@ -145,9 +145,9 @@ def silhouette_only_bulk(scene, tmp_path_factory):
             model_config = config.pipeline.model
             model_config.guidance.weight, model_config.samples_per_ray_scale = 0.0, 0.5
             model_config.lambda_photo, model_config.lambda_new_mass = 0.0, lambda_new
-            # L_new's gate as measured against the paper's model, a trainable copy of the whole field. The default
-            # local residual empties its sketches under L_new alone (docs/benchmarks.md, How fast a local edit
-            # fills and carves).
+            # L_new's gate as measured against the paper's model, a trainable copy of the whole field (the default,
+            # pinned): the local residual empties its sketches under L_new alone (docs/benchmarks.md, How fast a local
+            # edit fills and carves).
             model_config.nerf_edit_field = "full-copy"
             trainer = run_edit(config)
             transform = DataparserTransform.from_json(config.get_base_dir() / "dataparser_transforms.json")
