@@ -230,23 +230,45 @@ def sd_bytes(guidance, device_type: str) -> Tuple[float, float]:
 
 
 def is_local(representation: str, options) -> bool:
-    """Whether the edit trains a local residual (local_field.py) rather than a copy of its base."""
-    from sked_ns.models.nerf.local_field import LOCAL
+    """Whether the edit trains a local field or residual (local_field.py) rather than a copy of its base."""
+    from sked_ns.models.nerf.local_field import LOCAL, LOCAL_RESIDUAL
 
-    return representation_named(representation).renders == "rays" and getattr(options, "nerf_edit_field", None) == LOCAL
+    return (representation_named(representation).renders == "rays"
+            and getattr(options, "nerf_edit_field", None) in (LOCAL, LOCAL_RESIDUAL))
 
 
 def trained_bytes(representation: str, base_bytes: float, options) -> float:
-    """Bytes of the weights an edit trains: a local residual's at its largest table (local_field.local_grid_shape:
-    the base's levels and features, its table capped), else the base's (a whole copy; a splat edit's Gaussians)."""
-    from sked_ns.models.nerf.local_field import HIDDEN, MAX_LOG2_TABLE, OUTPUTS
+    """Bytes of the weights an edit trains: a local edit's grid at its largest table (local_field.local_grid_shape:
+    the base's levels and features, its table capped) with its copies of the base's MLPs (LocalField) or its head
+    (LocalResidual), else the base's (a whole copy; a splat edit's Gaussians)."""
+    from sked_ns.models.nerf.local_field import HIDDEN, LOCAL_RESIDUAL, MAX_LOG2_TABLE, OUTPUTS
 
     if not is_local(representation, options):
         return base_bytes
     levels, features = int(getattr(options, "num_levels", 16)), int(getattr(options, "features_per_level", 2))
     table = 2 ** min(MAX_LOG2_TABLE, int(getattr(options, "log2_hashmap_size", MAX_LOG2_TABLE)))
-    head = levels * features * HIDDEN + HIDDEN + HIDDEN * OUTPUTS + OUTPUTS
-    return 4.0 * (levels * table * features + head)
+    if options.nerf_edit_field == LOCAL_RESIDUAL:
+        networks = levels * features * HIDDEN + HIDDEN + HIDDEN * OUTPUTS + OUTPUTS
+    else:
+        networks = _copied_mlp_parameters(representation, levels * features, options)
+    return 4.0 * (levels * table * features + networks)
+
+
+def _copied_mlp_parameters(representation: str, grid_features: int, options) -> int:
+    """Parameters of a NerfactoField's density MLP and colour MLP (nerfstudio's widths and depths; instant-ngp's
+    field takes the defaults, and its appearance embedding is 32 wide when use_appearance_embedding is off)."""
+    def mlp(widths):  # torch Linear layers with biases
+        return sum(a * b + b for a, b in zip(widths[:-1], widths[1:]))
+
+    hidden, colour_hidden, geometry = int(getattr(options, "hidden_dim", 64)), int(getattr(options, "hidden_dim_color", 64)), 15
+    if representation == "instant-ngp":
+        hidden = colour_hidden = 64
+        appearance = 0 if options.use_appearance_embedding else 32
+    else:
+        appearance = int(options.appearance_embed_dim) if options.use_appearance_embedding else 0
+    directions = 16  # spherical harmonics of degree 4
+    return mlp([grid_features, hidden, 1 + geometry]) + mlp([directions + geometry + appearance, colour_hidden,
+                                                             colour_hidden, 3])
 
 
 def resident_bytes(representation: str, base_bytes: float, options) -> float:

@@ -13,7 +13,7 @@ import copy
 import sys
 from dataclasses import fields, is_dataclass
 from pathlib import Path, PurePath
-from typing import Dict, Iterator, Tuple
+from typing import Dict, Iterator, Optional, Tuple
 
 from nerfstudio.utils.rich_utils import CONSOLE
 
@@ -201,8 +201,9 @@ def settings_saved_before(saved) -> Dict[str, object]:
     return filled
 
 
-def resumed_config(config, saved, default, run_dir: Path, argv=None) -> None:
-    """Make `config` the `saved` edit's config (in place), with the settable settings typed on this command line."""
+def resumed_config(config, saved, default, run_dir: Path, argv=None, checkpoint: Optional[Path] = None) -> None:
+    """Make `config` the `saved` edit's config (in place), with the settable settings typed on this command line;
+    `checkpoint`: the one resumed, whose representation the model must be built as before its optimisers are."""
     for path, value in settings_saved_before(saved).items():
         CONSOLE.print(f"{run_dir / 'config.yml'} predates {flag(path)} (sked_ns {SETTINGS_SINCE[path][1]} or older): continuing with "
                       f"{_show(value)}, as it ran")
@@ -226,6 +227,21 @@ def resumed_config(config, saved, default, run_dir: Path, argv=None) -> None:
         set_setting(config, path, kept[path])
     carry_home(config, saved, typed)
     keep_sked_method(config, method, run_dir)
+    if checkpoint is not None:
+        keep_saved_representation(config.pipeline.model, checkpoint)
+
+
+def keep_saved_representation(model, checkpoint: Path) -> None:
+    """A local edit saved as a residual (0.8's "local") under a config.yml that says "local" resumes as one: its
+    optimiser state is the residual's."""
+    from sked_ns.method.frozen_base import read_model_state
+    from sked_ns.models.nerf.edited_base import is_saved_residual
+    from sked_ns.models.nerf.local_field import LOCAL, LOCAL_RESIDUAL
+
+    if getattr(model, "nerf_edit_field", None) == LOCAL and is_saved_residual(read_model_state(checkpoint)):
+        CONSOLE.print(f"{checkpoint}: saved as a residual on its base's outputs; continuing as "
+                      "--pipeline.model.nerf-edit-field local-residual, as it ran")
+        model.nerf_edit_field = LOCAL_RESIDUAL
 
 
 def keep_sked_method(config, typed_method: str, run_dir: Path) -> None:

@@ -186,7 +186,7 @@ def check_run_settings(config: TrainerConfig) -> None:
 
 def resume_edit(config: SkedTrainerConfig, base: BaseScene) -> None:
     """Continue the interrupted edit: its saved config, the settable flags typed now, from its latest intact checkpoint."""
-    resumed_config(config, base.config, preset_config(config.method_name), base.run_dir)
+    resumed_config(config, base.config, preset_config(config.method_name), base.run_dir, checkpoint=base.checkpoint)
     step = checkpoint_step(base.checkpoint)
     if config.max_num_iterations <= step + 1:
         typed = "max_num_iterations" in typed_settings(config, base.config)

@@ -69,7 +69,8 @@ class SkedOptions:
     weighs the same; a sketch covering less pulls harder than under the paper's)."""
     colour_residual: bool = True
     """Give new content its own colour capacity near the sketches (colour_residual.py): a colour the base never shows
-    is reached without moving the colour MLP everything kept shares. False: the paper's model."""
+    is reached without moving the colour MLP everything kept shares. False: the paper's model. A full-copy NeRF edit
+    only: a local edit's colour MLP is its own copy, used inside its box alone."""
     silhouette_opacity: Literal["editable", "any"] = "editable"
     """What L_sil asks to be opaque along a sketch ray: content near the sketches (opacity weighted by 1 - w), so a
     wall or table behind the sketch does not fill it before anything is made; "any" is the paper's (all opacity,
@@ -118,12 +119,13 @@ class SkedOptions:
     base's density and colour (held_field.py; the editable field is trained only at the others), and splat bases'
     Gaussians whose centre's weight is above it are never optimised, densified, pruned or reset. The rest is held to
     the base by L_pres. 1 holds nothing exactly: the paper's soft L_pres alone."""
-    nerf_edit_field: Literal["local", "full-copy"] = "full-copy"
-    """NeRF bases: what the edit trains. "full-copy": a trainable copy of the whole field and proposal networks (the
-    paper's model). "local": a residual on the frozen base over the box the edit may change
-    (models/nerf/local_field.py), whose checkpoint holds that residual alone, but it fills thin or tall parts more
-    slowly (docs/benchmarks.md, Edit quality), so it is not yet the default; an edit of a local edit is local too.
-    An edit resumes and loads as it was saved."""
+    nerf_edit_field: Literal["local", "local-residual", "full-copy"] = "local"
+    """NeRF bases: what the edit trains. "local": the base's own networks over the box the edit may change, a grid of
+    changes to its hash features and copies of its MLPs (models/nerf/local_field.py); its checkpoint holds those
+    alone. "local-residual": a residual on the base's outputs over that box, which fills more slowly; an edit of a
+    local edit is one (its base's outputs are all it has). "full-copy", and "local" on a base whose grid and MLP
+    tiny-cuda-nn fuses: a trainable copy of the whole field and proposal networks (the paper's model). An edit
+    resumes and loads as it was saved."""
     # Gaussian-splat bases only (models/splat/model.py); here so `ns-train sked` can parse them for any base.
     num_seeds: int = 3000
     """Splats: new Gaussians seeded inside the sketches' visual hull for new content (none when carving), each as wide
@@ -214,8 +216,8 @@ def copy_base_architecture(target: SkedOptions, base_model_config) -> None:
             setattr(target, name, copy.deepcopy(getattr(base_model_config, name)))
     cameras = getattr(base_model_config, "camera_optimizer", None)
     target.base_camera_optimizer = getattr(cameras, "mode", "off") if cameras is not None else "off"
-    if getattr(base_model_config, "nerf_edit_field", None) == "local":  # a local edit as the base (progressive):
-        target.nerf_edit_field = "local"  # it saved its changes alone, so there is no whole field to copy
+    if getattr(base_model_config, "nerf_edit_field", None) in ("local", "local-residual"):  # a local edit as the base:
+        target.nerf_edit_field = "local-residual"  # it saved its changes alone: no whole field or grid to copy
 
 
 def taken_from_the_base(config_class: type, base_class: type) -> None:

@@ -245,12 +245,13 @@ def test_benchmark_command_lines_parse_as_ns_train_parses_them(tmp_path):
     assert tuple(config.pipeline.datamanager.fov_range) == (20.0, 40.0) and config.pipeline.datamanager.edit_fill == 0
     assert config.pipeline.model.guidance.sampling == "pixel-centre"
     # The two NeRF edit fields, pinned whatever the default, and another seed for the run-to-run spread.
-    for tag in ("local", "full-copy"):
+    for tag, value in (("local-field", "local"), ("full-copy", "full-copy")):
         flags = [*edit_quality.VARIANTS[edit_quality._variant(tag)], "--machine.seed", "3"]
         config = tyro.cli(AnnotatedBaseConfigUnion, args=edit_quality.edit_arguments(
             tmp_path / "base", paths, "hat", protocol, tmp_path / "out", extra=flags))
-        assert config.pipeline.model.nerf_edit_field == tag and config.machine.seed == 3
-    assert edit_quality._run_tag("nerfacto", "cpu-100", "local", 3) != edit_quality._run_tag("nerfacto", "cpu-100", "local")
+        assert config.pipeline.model.nerf_edit_field == value and config.machine.seed == 3
+    assert edit_quality._run_tag("nerfacto", "cpu-100", "local-field", 3) != edit_quality._run_tag(
+        "nerfacto", "cpu-100", "local-field")
 
     arguments = gpu_check.edit_arguments(tmp_path / "base", tmp_path, tmp_path / "sd", "nerfacto", 7, "tiny", "cpu")
     config = tyro.cli(AnnotatedBaseConfigUnion, args=["sked", *arguments])

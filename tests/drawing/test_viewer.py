@@ -132,7 +132,7 @@ def test_steering_controls_change_what_the_viewer_shows(scene, tmp_path):
     resolve_edit(config)
     model = config.pipeline.setup(device="cpu", test_mode="val").model
     with torch.no_grad():  # make the edit differ from the base
-        for parameter in model.field.mlp_head.parameters():
+        for parameter in model.local_field.colour_mlp.parameters():  # the default edit's copy of the colour MLP
             parameter.add_(0.5)
     view = model.sketch_set.views[0]
     edit, base = render_at(model, view, 24), render_base_at(model, view, 24)

@@ -38,7 +38,6 @@ def edited(scene):
     config = edit_config(scene["base"] / "nerfstudio_models", scene["data"], scene["sketches"],
                          scene["root"] / "edits", iterations=ITERATIONS, guidance_resolution=24,
                          silhouette_resolution=24, steps_per_save=20)
-    config.pipeline.model.nerf_edit_field = "local"  # the residual alone in its checkpoint; the default is below
     trainer = run_edit(config)
     return {"trainer": trainer, "run": trainer.base_dir, "base_digest_before": before}
 
@@ -67,10 +66,11 @@ def test_edit_fills_the_sketch_and_keeps_the_rest(scene, edited):
         assert view["psnr_outside"] > 25.0, view
 
 
-def test_default_edit_trains_a_copy_of_the_field_and_fills_the_sketch(scene, tmp_path):
+def test_a_full_copy_edit_trains_a_copy_of_the_field_and_fills_the_sketch(scene, tmp_path):
     config = edit_config(scene["base"], scene["data"], scene["sketches"], tmp_path, iterations=ITERATIONS,
                          guidance_resolution=24, silhouette_resolution=24, steps_per_save=ITERATIONS)
-    assert config.pipeline.model.nerf_edit_field == "full-copy"
+    assert config.pipeline.model.nerf_edit_field == "local"  # the default; the whole-field copy is an option
+    config.pipeline.model.nerf_edit_field = "full-copy"
     run = run_edit(config).base_dir
     for view in _sketch_metrics(load_pipeline(run), load_pipeline(scene["base"]), scene["sketches"]):
         assert view["ios_edit"] > 0.7 and view["ios_edit"] > view["ios_base"] + 0.4, view
@@ -89,9 +89,12 @@ def test_base_files_untouched_and_base_field_frozen(scene, edited):
     frozen = model.base_field.state_dict()
     for key, value in frozen.items():
         assert torch.equal(value, base_state[f"field.{key}"]), key
-    assert model.local_field.head[-1].weight.any(), "the edit's residual did not change"
+    assert type(model.local_field).__name__ == "LocalField"
+    assert model.local_field.encoding.hash_table.any(), "the edit's grid of changes did not change"
+    copied = model.local_field.density_mlp.state_dict()
+    assert any(not torch.equal(value, base_state[f"field.mlp_base.model.1.{key}"]) for key, value in copied.items())
     # The base (frozen, or its field and proposals the edit does not train) is not in the checkpoint, nor is any
-    # guidance weight: the edit is its residual alone.
+    # guidance weight: the edit is its local field alone.
     checkpoint = torch.load(sorted((edited["run"] / "nerfstudio_models").glob("*.ckpt"))[-1], map_location="cpu")
     top_level = {key.split(".")[1] for key in checkpoint["pipeline"] if key.startswith("_model.")}
     assert top_level <= {"local_field", "camera_optimizer", "device_indicator_param", "_extra_state"}, top_level
@@ -201,9 +204,9 @@ def test_progressive_edit_uses_the_edit_as_base(scene, edited, tmp_path):
     resolve_edit(config)
     assert config.load_dir is None
     assert config.pipeline.model.base_checkpoint.parent == edited["run"] / "nerfstudio_models"
-    assert config.pipeline.model.nerf_edit_field == "local"  # a local base has no whole field to copy
+    assert config.pipeline.model.nerf_edit_field == "local-residual"  # a local base: no whole field, no grid to read
     pipeline = config.pipeline.setup(device="cpu", test_mode="val")
-    # The earlier edit saved its residual alone: the new edit's frozen base is that edit, rendering as it does.
+    # The earlier edit saved its local field alone: the new edit's frozen base is that edit, rendering as it does.
     view = pipeline.model.sketch_set.views[0]
     earlier = load_pipeline(edited["run"]).model
     assert torch.equal(render_base_at(pipeline.model, view, 16)["rgb"], render_at(earlier, view, 16)["rgb"])
@@ -337,7 +340,7 @@ def test_nan_loss_skips_the_step_and_never_saves_nan(scene, tmp_path, monkeypatc
     config.set_timestamp()
     trainer = config.setup(local_rank=0, world_size=1)
     trainer.setup()
-    trained = trainer.pipeline.model.field  # what the default edit trains
+    trained = trainer.pipeline.model.local_field  # what the default edit trains
     before = {k: v.clone() for k, v in trained.state_dict().items()}
     original = trainer.pipeline.model.get_sked_loss_dict
 

@@ -357,3 +357,21 @@ def test_an_edit_resumed_by_an_older_version_opens_and_says_how_nerfstudio_can_o
     with pytest.warns(UserWarning, match="load_step 20"):
         config.save_config()
     assert (config.load_dir, config.load_step) == (run / "nerfstudio_models", 30)
+
+
+@pytest.mark.parametrize("saved_keys, resumed_as", [
+    (["local_field.head.0.weight", "local_field.encoding.hash_table"], "local-residual"),  # 0.8's local edit
+    (["local_field.density_mlp.layers.0.weight", "local_field.encoding.hash_table"], "local"),
+])
+def test_a_local_edit_resumes_as_the_representation_its_checkpoint_holds(tmp_path, saved_keys, resumed_as):
+    from sked_ns.engine.resume import keep_saved_representation
+
+    checkpoint = tmp_path / "step-000000019.ckpt"
+    torch.save({"pipeline": {f"_model.{key}": torch.zeros(2) for key in saved_keys}, "step": 19}, checkpoint)
+    model = SimpleNamespace(nerf_edit_field="local")
+    keep_saved_representation(model, checkpoint)
+    assert model.nerf_edit_field == resumed_as
+    # A whole-field copy is left to its own setting (config.yml says it, or its age: SETTINGS_SINCE).
+    model = SimpleNamespace(nerf_edit_field="full-copy")
+    keep_saved_representation(model, checkpoint)
+    assert model.nerf_edit_field == "full-copy"

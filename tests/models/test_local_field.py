@@ -222,3 +222,27 @@ def test_an_edit_saved_as_a_whole_field_loads_as_one(scene, tmp_path):
     assert any(p.requires_grad for p in local.field.parameters())
     view = local.sketch_set.views[0]
     assert torch.equal(render_at(local, view, 24)["rgb"], render_at(full, view, 24)["rgb"])
+
+
+def test_a_base_whose_grid_and_mlp_are_fused_gets_a_full_copy(scene, tmp_path, monkeypatch, capsys):
+    import sked_ns.models.nerf.field_edit as field_edit
+
+    monkeypatch.setattr(field_edit, "splits_grid_and_mlp", lambda field: False)  # as a tiny-cuda-nn base
+    model = _model(scene, tmp_path)
+    assert model.local_field is None and model.config.nerf_edit_field == "full-copy"
+    assert any(p.requires_grad for p in model.field.parameters())
+    assert "fused (tiny-cuda-nn)" in capsys.readouterr().out.replace("\n", " ")
+
+
+def test_an_edit_saved_as_a_residual_loads_as_one(scene, tmp_path):
+    saved_by = _model(scene, tmp_path / "residual")
+    saved_by._use_residual()
+    _moved(saved_by.local_field, 0.3)
+    saved = saved_by.state_dict()
+    assert any(key.startswith("local_field.head.") for key in saved)
+    model = _model(scene, tmp_path / "field")
+    assert type(model.local_field).__name__ == "LocalField"
+    model.load_state_dict(saved)
+    assert isinstance(model.local_field, LocalResidual)
+    view = model.sketch_set.views[0]
+    assert torch.equal(render_at(model, view, 24)["rgb"], render_at(saved_by, view, 24)["rgb"])

@@ -12,6 +12,8 @@ base's own); docs/benchmarks.md (Step census) says what it changes.
 
 from __future__ import annotations
 
+from typing import Optional
+
 import torch
 from nerfstudio.data.scene_box import SceneBox
 from nerfstudio.field_components.activations import trunc_exp
@@ -19,6 +21,8 @@ from torch import Tensor
 
 BUILD_CHUNK = 1 << 18
 """Grid points per network call while the grid is built (bounds its transient memory)."""
+OCCUPIED = 0.01
+"""AddedMassGrid: the opacity over one lattice step above which a cell holds new mass (instant-ngp's threshold)."""
 
 
 def normalised_positions(network: torch.nn.Module, positions: Tensor) -> Tensor:
@@ -76,3 +80,45 @@ def density_at_normalised(network: torch.nn.Module, unit: Tensor) -> Tensor:
     else:
         before_activation = network.linear(network.encoding(unit).to(unit))
     return network.average_init_density * trunc_exp(before_activation)
+
+
+class AddedMassGrid(torch.nn.Module):
+    """Where a local edit added mass to its base over its box: 1 in the cells it did, 0 elsewhere, read trilinearly.
+
+    A LocalField edit keeps the base's proposal networks (nothing of them is trained or saved), which never saw the new
+    content: the sampler adds a density on this grid's cells (nerfacto.py), so new mass is sampled where it is. Built
+    from the field as it is (`refresh`) for a render outside training (training samples the whole hull); all 0
+    at a fresh edit, so the edit's samples start as the base's bit for bit. A cell is on where, at any point of a
+    lattice twice as fine, the edited density's excess over the base's makes one lattice step more than
+    `OCCUPIED` opaque (instant-ngp's occupancy test): the sampler's density there is a fixed one, not the excess,
+    whose steep values would end a proposal's ray at the cell's front face and hide what lies behind it.
+    """
+
+    def __init__(self, low: Tensor, high: Tensor, resolution: int) -> None:
+        super().__init__()
+        self.register_buffer("box", torch.stack([low, high]).float(), persistent=False)
+        self.register_buffer("grid", torch.zeros(1, 1, resolution, resolution, resolution, device=low.device),
+                             persistent=False)
+        self.version: Optional[int] = None  # the field's parameter versions at the last refresh; None: never built
+
+    @torch.no_grad()
+    def refresh(self, added_density, version: int) -> None:
+        """`added_density(positions (N, 3)) -> (N, 1)`: the edited density's excess over the base's."""
+        fine = 2 * self.grid.shape[-1]
+        centres = (torch.arange(fine, device=self.box.device, dtype=torch.float32) + 0.5) / fine
+        z, y, x = torch.meshgrid(centres, centres, centres, indexing="ij")  # grid_sample's (depth, height, width)
+        unit = torch.stack([x, y, z], dim=-1).reshape(-1, 3)
+        points = self.box[0] + unit * (self.box[1] - self.box[0])
+        values = torch.cat([added_density(chunk) for chunk in points.split(BUILD_CHUNK)]).float()
+        lattice_step = float((self.box[1] - self.box[0]).max()) / fine
+        excess = torch.nn.functional.max_pool3d(values.reshape(1, 1, fine, fine, fine), 2)
+        self.grid = (-torch.expm1(-excess * lattice_step) > OCCUPIED).float()
+        self.version = int(version)
+
+    def forward(self, positions: Tensor) -> Tensor:
+        """The grid (..., 1) at positions (..., 3), exactly 0 outside the box."""
+        unit = (positions.detach().float() - self.box[0]) / (self.box[1] - self.box[0]).clamp_min(1e-9)
+        inside = ((unit >= 0.0) & (unit <= 1.0)).all(dim=-1, keepdim=True)
+        value = torch.nn.functional.grid_sample(self.grid, (unit * 2.0 - 1.0).reshape(1, 1, 1, -1, 3),
+                                                mode="bilinear", padding_mode="border", align_corners=False)
+        return (value.reshape(*positions.shape[:-1], 1) * inside).to(positions.dtype)

@@ -25,6 +25,11 @@ def is_local_edit(state: Dict[str, Tensor]) -> bool:
     return any(key.startswith("local_field.") for key in state) and not any(key.startswith("field.") for key in state)
 
 
+def is_saved_residual(state: Dict[str, Tensor], prefix: str = "") -> bool:
+    """Whether a model state holds a LocalResidual (its MLP head), not a LocalField."""
+    return any(key.startswith(prefix + "local_field.head.") for key in state)
+
+
 def earlier_edit(checkpoint: Path, state: Dict[str, Tensor], **model_kwargs) -> torch.nn.Module:
     """The local edit saved as `state`, from `checkpoint` (the next edit's copy of its step-*.ckpt, or the run's own
     file), frozen."""

@@ -20,6 +20,7 @@ import torch
 from nerfstudio.cameras.rays import RayBundle, RaySamples
 from nerfstudio.field_components.encodings import HashEncoding
 from nerfstudio.field_components.field_heads import FieldHeadNames
+from nerfstudio.utils.rich_utils import CONSOLE
 from torch import Tensor
 
 from sked_ns.errors import SkedUserError
@@ -43,7 +44,7 @@ from sked_ns.models.nerf.edited_base import is_local_edit
 from sked_ns.models.nerf.hash_grid import use_fast_hash_grids
 from sked_ns.models.nerf.held_field import held_field_outputs
 from sked_ns.models.nerf.local_edit import LocalEdit
-from sked_ns.models.nerf.local_field import LOCAL
+from sked_ns.models.nerf.local_field import FULL_COPY, LOCAL, LOCAL_RESIDUAL, LocalField, splits_grid_and_mlp
 
 NERF_EDIT_OWNED = SkedOptions.EDIT_OWNED | {
     # the edit's own losses
@@ -80,7 +81,11 @@ class SkedMixin(LocalEdit, SkedEdit):
         if getattr(self.field, "embedding_appearance", None) is not None:
             self.field.embedding_appearance.requires_grad_(False)
         # The local edit (local_field.py) owns its colour; the full copy gets the colour residual.
-        self.local_field = self._local_residual() if self.config.nerf_edit_field == LOCAL else None
+        if self.config.nerf_edit_field == LOCAL and not splits_grid_and_mlp(self.field):
+            CONSOLE.print("The base's hash grid and MLP are fused (tiny-cuda-nn), so the edit cannot read the grid's "
+                          "features: it trains a copy of the whole field (--pipeline.model.nerf-edit-field full-copy).")
+            self.config.nerf_edit_field = FULL_COPY
+        self.local_field = self._local_edit() if self.config.nerf_edit_field in (LOCAL, LOCAL_RESIDUAL) else None
         self.colour_residual = (ColourResidual(self.edit_box.min, self.edit_box.max)
                                 if self.config.colour_residual and self.local_field is None else None)
         self.sketch_ray_opacity = SketchRayOpacity(self.sketch_set.views, self.config.silhouette_resolution)
@@ -116,6 +121,8 @@ class SkedMixin(LocalEdit, SkedEdit):
                 f"shape mismatch {mismatched[:3]}). Is --data the base's data, and the base a supported method?"
             )
         torch.nn.Module.load_state_dict(self, {key: state[key] for key in wanted}, strict=False)  # the base, as it is
+        if isinstance(self.local_field, LocalField):
+            self.local_field.take_base_networks(self.field)
         self._base_cameras = self._frozen_base_cameras(state)
 
     def _frozen_base_cameras(self, state: Dict[str, Tensor]) -> list:
@@ -164,7 +171,9 @@ class SkedMixin(LocalEdit, SkedEdit):
         if getattr(self, "colour_residual", None) is not None:
             # Its linear layer starts at zero, so the grid gets no gradient until it moves: train it at the grids' rate.
             groups["hash_grids"] += list(self.colour_residual.linear.parameters())
-        if self.local_field is not None:  # its head's last layer starts at zero too: the grids' rate (as above)
+        if isinstance(self.local_field, LocalField):  # its MLPs are copies of the base's: the MLPs' rate, as a full copy's
+            groups.setdefault("fields", []).extend(p for p in self.local_field.parameters() if id(p) not in grids)
+        elif self.local_field is not None:  # the residual's head's last layer starts at zero too: the grids' rate
             groups["hash_grids"] += list(self.local_field.head.parameters())
         return {name: params for name, params in groups.items() if params}  # a local edit trains no base module
 

@@ -21,18 +21,27 @@ Local edit, gives the rule and what it costs.
 
 from __future__ import annotations
 
+import copy
 import math
 from typing import Dict, Tuple
 
 import numpy as np
 import torch
+from nerfstudio.cameras.rays import RaySamples
+from nerfstudio.field_components.activations import trunc_exp
+from nerfstudio.field_components.encodings import HashEncoding
+from nerfstudio.field_components.field_heads import FieldHeadNames
+from nerfstudio.fields.base_field import get_normalized_directions
 from torch import Tensor
 
 from sked_ns.models.nerf.colour_residual import LOGIT_EPS
+from sked_ns.models.nerf.density_grid import normalised_positions
 from sked_ns.models.nerf.hash_grid import FastHashEncoding
 
-LOCAL, FULL_COPY = "local", "full-copy"
-"""The NeRF edit's representations: the residual over the box, or a trainable copy of the whole base (0.7's)."""
+LOCAL, LOCAL_RESIDUAL, FULL_COPY = "local", "local-residual", "full-copy"
+"""The NeRF edit's representations: the base's networks moved over the box (LocalField), a residual on the base's
+outputs over the box (LocalResidual: 0.8's local edit, and an edit of a local edit), or a trainable copy of the whole
+base."""
 MIN_LOG2_TABLE, MAX_LOG2_TABLE = 12, 15
 """Bounds of the local grid's table: at 2^15 entries a level, an edit of nerfstudio's default nerfacto (2^19) holds
 a sixteenth of its base's grid."""
@@ -42,6 +51,9 @@ OUTPUTS = 5
 """d (density scale), g (added density), r (three colour logits)."""
 HASH_INIT_SCALE = 0.1
 """The local grid's features start uniform in +-this (docs/method.md, Local edit: Rates)."""
+LOG_DENSITY_CAP = 30.0
+"""LocalField's cap on the log density: e^30 is opaque over any step a renderer takes, and its products with steps and
+weights stay far inside float32 (a base's own density above it, which no trained base shows, would start capped)."""
 GROWTH_CAP = 15.0
 """g's ceiling in a = s (exp(g) - 1): s e^15 is opaque over any step, and exp(g) past float32's range is inf, whose
 product with a kept point's 1 - w = 0 is NaN (as nerfacto's trunc_exp caps its own)."""
@@ -63,6 +75,25 @@ def local_grid_shape(base_encoding: torch.nn.Module, base_extent: float, box_siz
     log2 = min(max(wanted, MIN_LOG2_TABLE), MAX_LOG2_TABLE, int(base_encoding.log2_hashmap_size))
     return {"num_levels": levels, "min_res": int(base_encoding.min_res), "max_res": max(finest, int(base_encoding.min_res)),
             "log2_hashmap_size": log2, "features_per_level": int(base_encoding.features_per_level)}
+
+
+def box_grid_shape(base_encoding: torch.nn.Module, base_extent: float, box_size: np.ndarray) -> Dict[str, int]:
+    """`local_grid_shape` with its coarsest level as coarse over the box as the base's is: a few cells across it, so
+    one step moves the whole box's density (at the base's coarsest resolution scaled to the box the edit filled thin
+    parts far faster than with as many cells across the box as the base has across the scene)."""
+    shape = local_grid_shape(base_encoding, base_extent, box_size)
+    share = float(np.max(box_size)) / max(base_extent, 1e-9)
+    return {**shape, "min_res": min(max(2, round(int(base_encoding.min_res) * share)), shape["max_res"])}
+
+
+def splits_grid_and_mlp(field: torch.nn.Module) -> bool:
+    """Whether a nerfstudio field's density network is a torch hash grid followed by a torch MLP, and its colour head
+    a torch MLP: `LocalField` reads the grid's features and copies the MLPs (tiny-cuda-nn fuses them)."""
+    model = getattr(getattr(field, "mlp_base", None), "model", None)
+    head = getattr(field, "mlp_head", None)
+    return (isinstance(model, torch.nn.Sequential) and len(model) == 2 and isinstance(model[0], HashEncoding)
+            and model[0].tcnn_encoding is None and getattr(model[1], "tcnn_encoding", True) is None
+            and head is not None and getattr(head, "tcnn_encoding", True) is None)
 
 
 def base_grid_extent(field: torch.nn.Module) -> float:
@@ -139,3 +170,82 @@ class _FloorAtZero(torch.autograd.Function):
     def backward(ctx, grad: Tensor) -> Tensor:
         (total,) = ctx.saved_tensors
         return grad * ((total >= 0) | (grad < 0)).to(grad.dtype)
+
+
+class LocalField(torch.nn.Module):
+    """The base's own networks over the box: its grid's features plus a grid of changes, through trainable copies of
+    its density and colour MLPs (docs/method.md, Local edit).
+
+        h_e(x) = h_o(x) + delta(x),   (sigma_e, geo_e) = MLP_sigma'(h_e),   c_e = MLP_c'(d, geo_e, appearance)
+
+    with h_o the frozen base's hash features, delta a hash grid in box coordinates that starts at zero and the primed
+    MLPs copies of the base's that start as they are: the edit starts as the base bit for bit, and a step moves it as
+    a step moves a trained copy of the whole field (the copy's MLP turns a small change of features into several
+    units of log density), but only inside the box. Outside it every output is the base's (`torch.where`).
+    """
+
+    def __init__(self, low: np.ndarray, high: np.ndarray, shape: Dict[str, int], field: torch.nn.Module) -> None:
+        super().__init__()
+        bounds = np.stack([np.asarray(low, dtype=np.float64), np.asarray(high, dtype=np.float64)])
+        self.register_buffer("box", torch.as_tensor(bounds, dtype=torch.float32))
+        self.shape = dict(shape)
+        self.encoding = FastHashEncoding(**shape, implementation="torch")
+        torch.nn.init.zeros_(self.encoding.hash_table)  # the base's features unchanged; its MLP copy is live already
+        self.density_mlp = copy.deepcopy(field.mlp_base.model[1]).requires_grad_(True)
+        self.colour_mlp = copy.deepcopy(field.mlp_head).requires_grad_(True)
+
+    @torch.no_grad()
+    def take_base_networks(self, field: torch.nn.Module) -> None:
+        """The MLP copies <- the base's weights as loaded (a fresh edit; a resumed one then loads its own)."""
+        self.density_mlp.load_state_dict(field.mlp_base.model[1].state_dict())
+        self.colour_mlp.load_state_dict(field.mlp_head.state_dict())
+
+    def _inside(self, positions: Tensor) -> Tuple[Tensor, Tensor]:
+        points = positions.detach().float()
+        low, high = self.box[0], self.box[1]
+        inside = ((points >= low) & (points <= high)).all(dim=-1, keepdim=True)
+        return inside, ((points - low) / (high - low).clamp_min(1e-9)).clamp(0.0, 1.0)
+
+    def density(self, field: torch.nn.Module, positions: Tensor, added: bool = False) -> Tuple[Tensor, Tensor, Tensor]:
+        """(density (..., 1), geometry features, inside (..., 1)) at positions: NerfactoField.get_density with the
+        base's features moved by delta and the density MLP's copy. `added`: the density's excess over the base's
+        (the base's MLP on the base's features) instead."""
+        unit = normalised_positions(field, positions.detach())
+        selector = ((unit > 0.0) & (unit < 1.0)).all(dim=-1, keepdim=True)
+        unit = (unit * selector).reshape(-1, 3)
+        with torch.no_grad():
+            features = field.mlp_base.model[0](unit)
+        inside, in_box = self._inside(positions)
+        moved = features + self.encoding(in_box.reshape(-1, 3)) * inside.reshape(-1, 1)
+        density, geometry = self._activate(field, self.density_mlp(moved), positions, selector)
+        if added:
+            with torch.no_grad():
+                base, _ = self._activate(field, field.mlp_base.model[1](features), positions, selector)
+            density = (density - base).clamp_min(0.0) * inside
+        return density, geometry, inside
+
+    @staticmethod
+    def _activate(field: torch.nn.Module, out: Tensor, positions: Tensor, selector: Tensor) -> Tuple[Tensor, Tensor]:
+        out = out.reshape(*positions.shape[:-1], -1)
+        before_activation, geometry = torch.split(out, [1, out.shape[-1] - 1], dim=-1)
+        # nerfstudio's trunc_exp truncates its gradient only: capped, a runaway grid of changes stays finite.
+        before_activation = before_activation.to(positions).clamp_max(LOG_DENSITY_CAP)
+        return field.average_init_density * trunc_exp(before_activation) * selector, geometry
+
+    def forward(self, field: torch.nn.Module, ray_samples: RaySamples) -> Tuple[Dict, Tensor]:
+        """(density and colour at the samples, inside (..., 1)): NerfactoField's outputs with the copies."""
+        density, geometry, inside = self.density(field, ray_samples.frustums.get_positions())
+        directions = get_normalized_directions(ray_samples.frustums.directions).reshape(-1, 3)
+        head_in = [field.direction_encoding(directions), geometry.reshape(directions.shape[0], -1)]
+        if field.embedding_appearance is not None:  # a photo's while training, else the average or zeros (as set)
+            if field.training:
+                appearance = field.embedding_appearance(ray_samples.camera_indices.reshape(-1))
+            else:
+                appearance = field.embedding_appearance.mean(dim=0).expand(directions.shape[0], -1)
+                appearance = appearance if field.use_average_appearance_embedding else torch.zeros_like(appearance)
+            head_in.append(appearance)
+        rgb = self.colour_mlp(torch.cat(head_in, dim=-1)).reshape(*density.shape[:-1], 3).to(directions)
+        return {FieldHeadNames.DENSITY: density, FieldHeadNames.RGB: rgb}, inside
+
+    def extra_repr(self) -> str:
+        return ", ".join(f"{key}={value}" for key, value in self.shape.items())

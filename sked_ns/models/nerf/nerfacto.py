@@ -26,6 +26,7 @@ from sked_ns.method.options import (  # noqa: F401  (re-exported: the public nam
 from sked_ns.method.preservation import check_beta
 from sked_ns.models.nerf.density_grid import BaseDensityGrid
 from sked_ns.models.nerf.field_edit import NERF_EDIT_OWNED, SkedMixin
+from sked_ns.models.nerf.local_field import LocalField
 
 
 @dataclass
@@ -76,7 +77,8 @@ class SkedNerfactoModel(SkedMixin, NerfactoModel):
         self._base_proposal_grids: Dict[int, BaseDensityGrid] = {}  # built on the device at the first step
         held = [self._base_proposal_grid_fn(i, fn) for i, fn in enumerate(base_fns)] \
             if self.config.base_proposal_grid > 0 and self.__dict__.get("_earlier") is None else base_fns
-        self.density_fns = [self.edit_density_fn(fn, held[min(i, len(held) - 1)]) for i, fn in enumerate(self.density_fns)]
+        self.density_fns = [self.edit_density_fn(fn, held[min(i, len(held) - 1)], proposal=True)
+                            for i, fn in enumerate(self.density_fns)]
         self._boost_proposals_in_edit_box()
         self.density_fns = [self.in_chunks(fn, *self.proposal_networks) for fn in self.density_fns]
 
@@ -113,15 +115,23 @@ class SkedNerfactoModel(SkedMixin, NerfactoModel):
         would never place samples there; the boost does until they learn the new mass. Only
         the hull (where every view's mask agrees), not the whole edit box: samples, and so new
         mass, in the box's empty corners are haze from other viewpoints.
+
+        A LocalField edit's proposals are the base's and never learn (local_edit.py): its new content is sampled in
+        the hull only: the whole hull while training, and in every render the cells where it added mass (its
+        added-mass grid). Its new mass renders in the hull alone, and a fresh edit's samples are the base's bit for bit.
         """
         diagonal = float(np.linalg.norm(self.edit_box.max - self.edit_box.min).clip(1e-6))
 
         def boosted(density_fn):
             def density(positions: Tensor, times: Optional[Tensor] = None) -> Tensor:
                 value = density_fn(positions, times)
-                strength = self.config.edit_box_density * self.edit_box_boost()
-                if strength > 0:
-                    value = value + strength / diagonal * self.in_sketch_hull(positions)[..., None].to(value.dtype)
+                local = isinstance(self.local_field, LocalField)
+                share = 1.0 if local and self.training else self.edit_box_boost()
+                if local and not self.training:  # the cells of its new mass, at the hull's full density
+                    share = torch.clamp_min(self._added_mass_grid()(positions), share)
+                if local or share > 0:
+                    hull = self.in_sketch_hull(positions)[..., None].to(value.dtype)
+                    value = value + self.config.edit_box_density / diagonal * share * hull
                 return value
 
             return density
@@ -192,7 +202,7 @@ class SkedNerfactoModel(SkedMixin, NerfactoModel):
         return outputs, samples, field_outputs
 
     def _sampling_losses(self, rendered: Sequence[Dict[str, Tensor]]) -> Dict[str, Tensor]:
-        if self.local_field is not None:  # the proposals are the base's, moved by the residual: nothing to train
+        if self.local_field is not None:  # a local edit's proposals are the base's: nothing to train
             return {}
         loss = sum(interlevel_loss(r["weights_list"], r["ray_samples_list"]) for r in rendered)
         return {"interlevel_loss": self.config.interlevel_loss_mult * loss}

@@ -5,7 +5,7 @@ be sampled there. During the warm-up the cells of the sketches' visual hull (ins
 box) are switched on and no cell is pruned; after it, the grid follows the edited field as in instant-ngp. The grid sampler is
 nerfacc's on CUDA and a plain-torch one elsewhere (`sked_ns.models.nerf.occupancy`).
 
-A local edit (local_field.py) is its base outside its residual's box, and so is its grid: only the cells that box
+A local edit (local_field.py) is its base outside its box, and so is its grid: only the cells that box
 meets are updated, every other cell stays the frozen base's, and the checkpoint holds the cells that differ from the
 base's grid (`occupancy.grid_changes`), rebuilt over the base's grid at load.
 """
@@ -94,7 +94,7 @@ class SkedNGPModel(SkedMixin, NGPModel):
         self._switch_on_edit_box()
 
     def _edit_cells(self) -> Optional[Tensor]:
-        """Flat indices (as the grid's `occs`) of the cells a local edit can change: those its residual's box meets,
+        """Flat indices (as the grid's `occs`) of the cells a local edit can change: those its box meets,
         and the edit box's switched-on cells; None for a whole-field copy, which can change any."""
         if self.local_field is None:
             return None
