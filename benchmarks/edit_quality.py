@@ -296,9 +296,9 @@ _BEFORE_RESIDUAL = ["--pipeline.model.colour-residual", "False"]
 _SOFT_HOLD = ["--pipeline.model.keep-threshold", "1"]  # the paper's soft hold (no sample held exactly)
 VARIANTS = {"default": [],
             # NeRF bases: what an edit trains, pinned whatever the default is.
-            "local (NeRF edits: a residual over the edit box on the frozen base)": [
+            "local-field (NeRF edits: the base's networks over the edit box, a grid of changes and copies of its MLPs)": [
                 "--pipeline.model.nerf-edit-field", "local"],
-            "full-copy (NeRF edits: a trained copy of the base's whole field, the default)": [
+            "full-copy (NeRF edits: a trained copy of the base's whole field; the paper's model, the default until 0.9)": [
                 "--pipeline.model.nerf-edit-field", "full-copy"],
             "no-colour-residual": _BEFORE_RESIDUAL,
             "paper (occupancy target, whole-ray L_sil, no photo anchor, no exact hold)": [

@@ -1,10 +1,11 @@
-"""Edit size: what a NeRF edit trains, holds in its optimiser and saves, as a whole-field copy and as a local residual.
+"""Edit size: what a NeRF edit trains, holds in its optimiser and saves, as a whole-field copy and as a local edit.
 
     python benchmarks/edit_size.py                               # nerfacto and instant-ngp at nerfstudio's sizes
     python benchmarks/edit_size.py --bases nerfacto --workdir /tmp/w
 
 Sets up a real `ns-train sked` edit of the demo scene for each base (fitted with its method's own architecture:
-nerfacto's hash table 2^19), once per `--pipeline.model.nerf-edit-field` ("full-copy", 0.7's edit, and "local"),
+nerfacto's hash table 2^19), once per `--pipeline.model.nerf-edit-field` ("full-copy": 0.7's edit; "local": the base's networks over the box,
+the default; "local-residual": 0.8's local edit),
 runs one iteration (the guidance replaced by a stand-in image gradient, as the step census does) so that Adam's state
 exists, saves the checkpoint as the trainer does, and records: trainable parameters, optimiser state bytes, the
 checkpoint's size (and its model and optimiser parts), the local grid's shape, and what the edit holds between steps
@@ -27,7 +28,7 @@ import torch
 from harness import ImageGradient
 from memory import resident_bytes
 
-REPRESENTATIONS = ("full-copy", "local")
+REPRESENTATIONS = ("full-copy", "local", "local-residual")
 
 
 def tensor_bytes(value) -> int:
@@ -82,11 +83,12 @@ def table(results: Dict) -> str:
     for key, entry in results.items():
         if not isinstance(entry, dict) or "full-copy" not in entry:
             continue
-        old, new = entry["full-copy"], entry["local"]
+        old, new, residual = entry["full-copy"], entry["local"], entry.get("local-residual")
         for name, unit in (("trainable_parameters", 1), ("optimiser_state_bytes", 1e6), ("checkpoint_bytes", 1e6)):
             rows.append([key, name.replace("_bytes", " (MB)").replace("_", " "), f"{old[name] / unit:,.2f}",
-                         f"{new[name] / unit:,.2f}", f"{new[name] / old[name]:.1%}"])
-    return harness.markdown_table(["base", "quantity", "full copy", "local", "local / full"], rows)
+                         f"{new[name] / unit:,.2f}", f"{new[name] / old[name]:.1%}",
+                         "-" if residual is None else f"{residual[name] / unit:,.2f}"])
+    return harness.markdown_table(["base", "quantity", "full copy", "local", "local / full", "local residual"], rows)
 
 
 def main() -> None:

@@ -193,6 +193,9 @@ def warn_degenerate_settings(config: SkedOptions, sketch_set: SketchSet) -> List
         messages.append("lambda_pres = 0: nothing preserves the base (the paper's no-preserve ablation).")
     if config.lambda_sil == 0 and config.prompt:
         messages.append("lambda_sil = 0: nothing makes the edit fill the sketches (the paper's no-silhouette ablation).")
+    if getattr(config, "edit_box_density", None) == 0 and config.nerf_edit_field == "local" and config.prompt:
+        messages.append("edit_box_density = 0 on a local edit: its proposals are the base's, so nothing new is ever "
+                        "sampled or rendered; use --pipeline.model.nerf-edit-field full-copy to edit without it.")
     for view in sketch_set.views:
         covered = float(view.mask.mean())
         if covered > 0.9:

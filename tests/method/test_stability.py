@@ -146,7 +146,8 @@ def test_whole_image_sketches_stay_finite_and_warn(scene, tmp_path):
 @pytest.mark.parametrize(
     "settings, message",
     [({"beta": 1e-6}, "under a pixel"), ({"beta": 1e3}, "change everything"),
-     ({"lambda_pres": 0.0}, "no-preserve"), ({"lambda_sil": 0.0, "prompt": "a hat"}, "no-silhouette")],
+     ({"lambda_pres": 0.0}, "no-preserve"), ({"lambda_sil": 0.0, "prompt": "a hat"}, "no-silhouette"),
+     ({"edit_box_density": 0.0, "prompt": "a hat"}, "nothing new is ever sampled")],
 )
 def test_degenerate_settings_warn(scene, tmp_path, settings, message):
     with pytest.warns(SkedSettingsWarning, match=message):

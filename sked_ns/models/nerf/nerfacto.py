@@ -38,7 +38,8 @@ class SkedNerfactoModelConfig(NerfactoModelConfig, SkedOptions):
     _target: Type = field(default_factory=lambda: SkedNerfactoModel)
     edit_box_density: float = 2.0
     """Proposal density added inside the sketches' visual hull (within the edit box) during warm-up, per unit
-    of box diagonal."""
+    of box diagonal. A local edit samples its new content with it for the whole edit, and renders it with it (its
+    proposals are the base's: docs/method.md, Local edit): 0 leaves a local edit nothing new to sample."""
     base_proposal_grid: int = 128
     """The frozen base's proposal densities, which decide where kept space is sampled, read from a grid of this many
     cells a side sampled once per edit (at most each network's finest hash level; models/nerf/density_grid.py), not
