@@ -104,9 +104,11 @@ def summary(results: Dict, checkpoints: List[int]) -> List[List[str]]:
     for task, figure in (("fill", "ios"), ("carve", "emptied")):
         for field, seeds in results.get(task, {}).items():
             for step in checkpoints:
-                values = [per_seed(run[str(step)], figure) for run in seeds.values()]
-                kept = [np.mean(run[str(step)]["psnr_outside"]) for run in seeds.values()
-                        if "psnr_outside" in run[str(step)]]
+                runs = [run[str(step)] for run in seeds.values() if str(step) in run]  # a kept run may lack one
+                if not runs:
+                    continue
+                values = [per_seed(run, figure) for run in runs]
+                kept = [np.mean(run["psnr_outside"]) for run in runs if "psnr_outside" in run]
                 rows.append([task, field, step, f"{np.mean(values):.3f}", f"{min(values):.3f}-{max(values):.3f}",
                              f"{np.mean(kept):.1f}" if kept else "-", len(values)])
     return rows
