@@ -250,22 +250,23 @@ def trained_bytes(representation: str, base_bytes: float, options) -> float:
     if options.nerf_edit_field == LOCAL_RESIDUAL:
         networks = levels * features * HIDDEN + HIDDEN + HIDDEN * OUTPUTS + OUTPUTS
     else:
-        networks = _copied_mlp_parameters(representation, levels * features, options)
+        networks = _copied_mlp_parameters(levels * features, options)
     return 4.0 * (levels * table * features + networks)
 
 
-def _copied_mlp_parameters(representation: str, grid_features: int, options) -> int:
+def _copied_mlp_parameters(grid_features: int, options) -> int:
     """Parameters of a NerfactoField's density MLP and colour MLP (nerfstudio's widths and depths; instant-ngp's
-    field takes the defaults, and its appearance embedding is 32 wide when use_appearance_embedding is off)."""
+    config, which has no appearance_embed_dim, builds its field with the defaults and an appearance embedding 32 wide
+    when use_appearance_embedding is off)."""
     def mlp(widths):  # torch Linear layers with biases
         return sum(a * b + b for a, b in zip(widths[:-1], widths[1:]))
 
     hidden, colour_hidden, geometry = int(getattr(options, "hidden_dim", 64)), int(getattr(options, "hidden_dim_color", 64)), 15
-    if representation == "instant-ngp":
+    if hasattr(options, "appearance_embed_dim"):  # nerfacto's config
+        appearance = int(options.appearance_embed_dim) if options.use_appearance_embedding else 0
+    else:
         hidden = colour_hidden = 64
         appearance = 0 if options.use_appearance_embedding else 32
-    else:
-        appearance = int(options.appearance_embed_dim) if options.use_appearance_embedding else 0
     directions = 16  # spherical harmonics of degree 4
     return mlp([grid_features, hidden, 1 + geometry]) + mlp([directions + geometry + appearance, colour_hidden,
                                                              colour_hidden, 3])

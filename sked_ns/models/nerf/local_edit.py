@@ -116,11 +116,12 @@ class LocalEdit:
         if isinstance(local, LocalField):
             field = self.base_field
 
-            def moved(samples: RaySamples) -> Dict[str, Tensor]:
+            def moved(samples: RaySamples, density: Tensor, rgb: Tensor) -> Dict[str, Tensor]:
                 outputs, inside = local(field, samples)
-                return {key: torch.where(inside, value, base[key].to(value.dtype)) for key, value in outputs.items()}
+                kept = {FieldHeadNames.DENSITY: density, FieldHeadNames.RGB: rgb}  # the chunk's base outputs
+                return {key: torch.where(inside, value, kept[key].to(value.dtype)) for key, value in outputs.items()}
 
-            edited = self.in_chunks(moved, local)(ray_samples)
+            edited = self.in_chunks(moved, local)(ray_samples, base[FieldHeadNames.DENSITY], base[FieldHeadNames.RGB])
             return hold({**base, **edited}, base, self._kept(ray_samples.frustums.get_positions())), base
 
         def residual(points: Tensor, density: Tensor, rgb: Tensor, editable: Tensor) -> Dict[str, Tensor]:
