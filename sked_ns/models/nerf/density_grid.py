@@ -25,6 +25,13 @@ OCCUPIED = 0.01
 """AddedMassGrid: the opacity over one lattice step above which a cell holds new mass (instant-ngp's threshold)."""
 
 
+def cell_centres(resolution: int, device) -> Tensor:
+    """The centres of a resolution^3 grid over [0, 1]^3, (N, 3) in grid_sample's order (z slowest, x fastest)."""
+    centres = (torch.arange(resolution, device=device, dtype=torch.float32) + 0.5) / resolution
+    z, y, x = torch.meshgrid(centres, centres, centres, indexing="ij")
+    return torch.stack([x, y, z], dim=-1).reshape(-1, 3)
+
+
 def normalised_positions(network: torch.nn.Module, positions: Tensor) -> Tensor:
     """Positions as nerfstudio's HashMLPDensityField.get_density feeds its grid: [0, 1]^3 inside its space."""
     if network.spatial_distortion is not None:
@@ -43,11 +50,7 @@ class BaseDensityGrid(torch.nn.Module):
     @staticmethod
     @torch.no_grad()
     def _sample(network: torch.nn.Module, resolution: int) -> Tensor:
-        device = next(network.parameters()).device
-        centres = (torch.arange(resolution, device=device, dtype=torch.float32) + 0.5) / resolution
-        # grid_sample's layout: (depth = z, height = y, width = x)
-        z, y, x = torch.meshgrid(centres, centres, centres, indexing="ij")
-        points = torch.stack([x, y, z], dim=-1).reshape(-1, 3)
+        points = cell_centres(resolution, next(network.parameters()).device)
         values = [density_at_normalised(network, chunk) for chunk in points.split(BUILD_CHUNK)]
         return torch.cat(values).reshape(1, 1, resolution, resolution, resolution)
 
@@ -105,10 +108,7 @@ class AddedMassGrid(torch.nn.Module):
     def refresh(self, added_density, version: int) -> None:
         """`added_density(positions (N, 3)) -> (N, 1)`: the edited density's excess over the base's."""
         fine = 2 * self.grid.shape[-1]
-        centres = (torch.arange(fine, device=self.box.device, dtype=torch.float32) + 0.5) / fine
-        z, y, x = torch.meshgrid(centres, centres, centres, indexing="ij")  # grid_sample's (depth, height, width)
-        unit = torch.stack([x, y, z], dim=-1).reshape(-1, 3)
-        points = self.box[0] + unit * (self.box[1] - self.box[0])
+        points = self.box[0] + cell_centres(fine, self.box.device) * (self.box[1] - self.box[0])
         values = torch.cat([added_density(chunk) for chunk in points.split(BUILD_CHUNK)]).float()
         lattice_step = float((self.box[1] - self.box[0]).max()) / fine
         excess = torch.nn.functional.max_pool3d(values.reshape(1, 1, fine, fine, fine), 2)
