@@ -296,8 +296,13 @@ _BEFORE_RESIDUAL = ["--pipeline.model.colour-residual", "False"]
 _SOFT_HOLD = ["--pipeline.model.keep-threshold", "1"]  # the paper's soft hold (no sample held exactly)
 VARIANTS = {"default": [],
             # NeRF bases: what an edit trains, pinned whatever the default is.
-            "local-field (NeRF edits: the base's networks over the edit box, a grid of changes and copies of its MLPs)": [
-                "--pipeline.model.nerf-edit-field", "local"],
+            "local-field (NeRF edits: the base's networks over the edit box, a grid of changes and copies of its MLPs, "
+            "a learnt hull proposal and the colour residual)": ["--pipeline.model.nerf-edit-field", "local"],
+            "local-field-0.9 (the local field as 0.9 made it: no hull proposal, no colour residual)": [
+                "--pipeline.model.nerf-edit-field", "local", "--pipeline.model.hull-proposal-grid", "0",
+                *_BEFORE_RESIDUAL],
+            "no-hull-proposal (NeRF local field: the hull sampled evenly, as 0.9's)": [
+                "--pipeline.model.hull-proposal-grid", "0"],
             "full-copy (NeRF edits: a trained copy of the base's whole field; the paper's model, the default until 0.9)": [
                 "--pipeline.model.nerf-edit-field", "full-copy"],
             "no-colour-residual": _BEFORE_RESIDUAL,

@@ -232,16 +232,29 @@ def resumed_config(config, saved, default, run_dir: Path, argv=None, checkpoint:
 
 
 def keep_saved_representation(model, checkpoint: Path) -> None:
-    """A local edit saved as a residual (0.8's "local") under a config.yml that says "local" resumes as one: its
-    optimiser state is the residual's."""
+    """A local edit saved as a residual (0.8's "local") under a config.yml that says "local" resumes as one, and a
+    local field saved without its hull proposal (0.9) resumes without one: its optimiser state is what it trained."""
     from sked_ns.method.frozen_base import read_model_state
     from sked_ns.models.nerf.edited_base import is_saved_residual
     from sked_ns.models.nerf.local_field import LOCAL, LOCAL_RESIDUAL
 
-    if getattr(model, "nerf_edit_field", None) == LOCAL and is_saved_residual(read_model_state(checkpoint)):
+    if getattr(model, "nerf_edit_field", None) != LOCAL:
+        return
+    state = read_model_state(checkpoint)
+    if is_saved_residual(state):
         CONSOLE.print(f"{checkpoint}: saved as a residual on its base's outputs; continuing as "
                       "--pipeline.model.nerf-edit-field local-residual, as it ran")
         model.nerf_edit_field = LOCAL_RESIDUAL
+    elif any(key.startswith("local_field.") for key in state):
+        saved = lambda module: any(key.startswith(module + ".") for key in state)  # noqa: E731
+        if getattr(model, "hull_proposal_grid", 0) > 0 and not saved("hull_proposal"):
+            CONSOLE.print(f"{checkpoint}: saved without a learned hull proposal (0.9); continuing with "
+                          "--pipeline.model.hull-proposal-grid 0, as it ran")
+            model.hull_proposal_grid = 0
+        if getattr(model, "colour_residual", False) and not saved("colour_residual"):
+            CONSOLE.print(f"{checkpoint}: saved without a colour residual (0.9); continuing with "
+                          "--pipeline.model.colour-residual False, as it ran")
+            model.colour_residual = False
 
 
 def keep_sked_method(config, typed_method: str, run_dir: Path) -> None:

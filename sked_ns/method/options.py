@@ -69,8 +69,8 @@ class SkedOptions:
     weighs the same; a sketch covering less pulls harder than under the paper's)."""
     colour_residual: bool = True
     """Give new content its own colour capacity near the sketches (colour_residual.py): a colour the base never shows
-    is reached without moving the colour MLP everything kept shares. False: the paper's model. A full-copy NeRF edit
-    only: a local edit's colour MLP is its own copy, used inside its box alone."""
+    is reached without moving the colour MLP everything kept shares. False: the paper's model. Ignored by a
+    local-residual NeRF edit, whose residual moves colours itself."""
     silhouette_opacity: Literal["editable", "any"] = "editable"
     """What L_sil asks to be opaque along a sketch ray: content near the sketches (opacity weighted by 1 - w), so a
     wall or table behind the sketch does not fill it before anything is made; "any" is the paper's (all opacity,

@@ -359,18 +359,23 @@ def test_an_edit_resumed_by_an_older_version_opens_and_says_how_nerfstudio_can_o
     assert (config.load_dir, config.load_step) == (run / "nerfstudio_models", 30)
 
 
-@pytest.mark.parametrize("saved_keys, resumed_as", [
-    (["local_field.head.0.weight", "local_field.encoding.hash_table"], "local-residual"),  # 0.8's local edit
-    (["local_field.density_mlp.layers.0.weight", "local_field.encoding.hash_table"], "local"),
+FIELD_KEYS = ["local_field.density_mlp.layers.0.weight", "local_field.encoding.hash_table"]
+
+
+@pytest.mark.parametrize("saved_keys, resumed_as, options", [
+    (["local_field.head.0.weight", "local_field.encoding.hash_table"], "local-residual", (32, True)),  # 0.8's
+    (FIELD_KEYS, "local", (0, False)),  # 0.9's local field: no hull proposal, no colour residual
+    (FIELD_KEYS + ["hull_proposal.log_scale", "colour_residual.linear.weight"], "local", (32, True)),
 ])
-def test_a_local_edit_resumes_as_the_representation_its_checkpoint_holds(tmp_path, saved_keys, resumed_as):
+def test_a_local_edit_resumes_as_the_representation_its_checkpoint_holds(tmp_path, saved_keys, resumed_as, options):
     from sked_ns.engine.resume import keep_saved_representation
 
     checkpoint = tmp_path / "step-000000019.ckpt"
     torch.save({"pipeline": {f"_model.{key}": torch.zeros(2) for key in saved_keys}, "step": 19}, checkpoint)
-    model = SimpleNamespace(nerf_edit_field="local")
+    model = SimpleNamespace(nerf_edit_field="local", hull_proposal_grid=32, colour_residual=True)
     keep_saved_representation(model, checkpoint)
     assert model.nerf_edit_field == resumed_as
+    assert (model.hull_proposal_grid, model.colour_residual) == options  # what it trained, as it ran
     # A whole-field copy is left to its own setting (config.yml says it, or its age: SETTINGS_SINCE).
     model = SimpleNamespace(nerf_edit_field="full-copy")
     keep_saved_representation(model, checkpoint)

@@ -168,7 +168,9 @@ def test_a_local_edit_trains_and_saves_only_its_residual(request, tmp_path, base
     model = _model(request.getfixturevalue(base), tmp_path)
     assert model.local_field is not None
     trainable = {id(p) for group in model.get_param_groups().values() for p in group}
-    assert trainable == {id(p) for p in model.local_field.parameters()}
+    own = [model.local_field, model.colour_residual] + ([model.hull_proposal] if base == "scene" else [])
+    assert trainable == {id(p) for module in own for p in module.parameters()}
+    assert getattr(model, "hull_proposal", None) is None or base == "scene"  # nerfacto's samples: proposals
     saved = model.state_dict()
     assert not [key for key in saved if key.startswith(("field.", "proposal_networks."))]
     assert any(key.startswith("local_field.") for key in saved)
@@ -204,7 +206,7 @@ def test_gradients_of_a_local_edit_reach_only_its_residual(scene, tmp_path):
     loss = field_outputs[FieldHeadNames.DENSITY].sum() + field_outputs[FieldHeadNames.RGB].sum()
     loss.backward()
     for name, parameter in model.named_parameters():
-        if not name.startswith("local_field."):
+        if not name.startswith(("local_field.", "colour_residual.", "hull_proposal.")):  # the edit's own modules
             assert parameter.grad is None, name
     assert any(p.grad is not None and p.grad.any() for p in model.local_field.parameters())
 
@@ -244,5 +246,28 @@ def test_an_edit_saved_as_a_residual_loads_as_one(scene, tmp_path):
     assert type(model.local_field).__name__ == "LocalField"
     model.load_state_dict(saved)
     assert isinstance(model.local_field, LocalResidual)
+    view = model.sketch_set.views[0]
+    assert torch.equal(render_at(model, view, 24)["rgb"], render_at(saved_by, view, 24)["rgb"])
+
+
+def test_the_interlevel_loss_teaches_a_local_edit_where_its_new_content_is(scene, tmp_path):
+    """nerfacto's interlevel loss trains the hull proposal (density_grid.HullProposal) as it trains proposal networks."""
+    model = _model(scene, tmp_path).train()
+    assert torch.equal(model.hull_proposal.log_scale, torch.zeros_like(model.hull_proposal.log_scale))
+    outputs, _, _ = model._render(model._collide(_view_rays(model.sketch_set.views[0], 16)))
+    losses = model._sampling_losses([outputs])
+    assert torch.isfinite(losses["interlevel_loss"])
+    losses["interlevel_loss"].backward()
+    assert model.hull_proposal.log_scale.grad is not None and model.hull_proposal.log_scale.grad.any()
+
+
+def test_a_local_field_saved_without_hull_proposal_or_colour_residual_loads(scene, tmp_path):
+    """0.9 saved neither: they load as fresh ones, which move nothing (the edit renders as it did)."""
+    saved_by = _model(scene, tmp_path / "saved")
+    _moved(saved_by.local_field, 0.3)
+    state = {key: value for key, value in saved_by.state_dict().items()
+             if not key.startswith(("hull_proposal.", "colour_residual."))}
+    model = _model(scene, tmp_path / "loaded")
+    model.load_state_dict(state)
     view = model.sketch_set.views[0]
     assert torch.equal(render_at(model, view, 24)["rgb"], render_at(saved_by, view, 24)["rgb"])

@@ -12,7 +12,7 @@ from nerfstudio.field_components.field_heads import FieldHeadNames
 from nerfstudio.field_components.spatial_distortions import SceneContraction
 from nerfstudio.fields.nerfacto_field import NerfactoField
 
-from sked_ns.models.nerf.density_grid import OCCUPIED, AddedMassGrid
+from sked_ns.models.nerf.density_grid import LOG_SCALE_BOUND, OCCUPIED, AddedMassGrid, HullProposal
 from sked_ns.models.nerf.local_field import LocalField, box_grid_shape, splits_grid_and_mlp
 
 LOW, HIGH = np.array([-0.3, -0.3, -0.3]), np.array([0.3, 0.3, 0.3])
@@ -147,3 +147,18 @@ def test_the_added_mass_grid_is_zero_until_the_edit_adds_mass_and_only_in_its_bo
         assert len(near) and bool((near == 1.0).all()) == on
         far = value[in_box & (points < 0.0).all(dim=-1)]
         assert len(far) and torch.equal(far, torch.zeros_like(far))
+
+
+def test_the_hull_proposal_starts_at_one_and_stays_finite_however_far_it_runs():
+    low, high = torch.tensor([-0.3, -0.3, -0.3]), torch.tensor([0.3, 0.3, 0.3])
+    proposal = HullProposal(low, high, 8)
+    points = torch.rand(4096, 3, generator=torch.Generator().manual_seed(2)) * 2.0 - 1.0  # inside and outside the box
+    assert torch.equal(proposal(points), torch.ones(4096, 1))  # the hull's density as set: samples as before
+    proposal(points[:64]).sum().backward()
+    assert proposal.log_scale.grad.any()  # a loss on the sampler's density reaches the grid
+    for runaway in (1e30, -1e30):
+        with torch.no_grad():
+            proposal.log_scale.fill_(runaway)
+        value = proposal(points)
+        assert torch.isfinite(value).all() and value.min() > 0
+        assert torch.allclose(value, torch.full_like(value, float(np.exp(np.sign(runaway) * LOG_SCALE_BOUND))), rtol=1e-5)

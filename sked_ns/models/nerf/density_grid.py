@@ -23,6 +23,8 @@ BUILD_CHUNK = 1 << 18
 """Grid points per network call while the grid is built (bounds its transient memory)."""
 OCCUPIED = 0.01
 """AddedMassGrid: the opacity over one lattice step above which a cell holds new mass (instant-ngp's threshold)."""
+LOG_SCALE_BOUND = 10.0
+"""HullProposal: |s| is read at most this (e^10 times the hull's density is opaque over any proposal step)."""
 
 
 def cell_centres(resolution: int, device) -> Tensor:
@@ -122,3 +124,26 @@ class AddedMassGrid(torch.nn.Module):
         value = torch.nn.functional.grid_sample(self.grid, (unit * 2.0 - 1.0).reshape(1, 1, 1, -1, 3),
                                                 mode="bilinear", padding_mode="border", align_corners=False)
         return (value.reshape(*positions.shape[:-1], 1) * inside).to(positions.dtype)
+
+
+class HullProposal(torch.nn.Module):
+    """A LocalField edit's own share of its proposal density: exp(s(x)) times the hull's density, with s a dense grid
+    of log scales over the edit box, 0 at a fresh edit (the hull's density as set: samples as before).
+
+    The base's proposal networks never saw the new content and a local edit trains none of them, so without this its
+    samples stay spread evenly through the hull: the field learns a haze that renders grainy wherever the samples fall
+    elsewhere. nerfacto's interlevel loss trains s as nerfacto trains its proposal networks: the sampler's density
+    moves to where the edit's weights are, so new content is sampled at its surface, in training and in every render.
+    """
+
+    def __init__(self, low: Tensor, high: Tensor, resolution: int) -> None:
+        super().__init__()
+        self.register_buffer("box", torch.stack([low, high]).float(), persistent=False)
+        self.log_scale = torch.nn.Parameter(torch.zeros(1, 1, resolution, resolution, resolution, device=low.device))
+
+    def forward(self, positions: Tensor) -> Tensor:
+        """exp(s) (..., 1) at positions (..., 3); the border cells' value outside the box (the hull lies inside it)."""
+        unit = (positions.detach().float() - self.box[0]) / (self.box[1] - self.box[0]).clamp_min(1e-9)
+        value = torch.nn.functional.grid_sample(self.log_scale, (unit * 2.0 - 1.0).reshape(1, 1, 1, -1, 3),
+                                                mode="bilinear", padding_mode="border", align_corners=False)
+        return torch.exp(value.reshape(*positions.shape[:-1], 1).clamp(-LOG_SCALE_BOUND, LOG_SCALE_BOUND)).to(positions.dtype)

@@ -44,7 +44,14 @@ from sked_ns.models.nerf.edited_base import is_local_edit
 from sked_ns.models.nerf.hash_grid import use_fast_hash_grids
 from sked_ns.models.nerf.held_field import held_field_outputs
 from sked_ns.models.nerf.local_edit import LocalEdit
-from sked_ns.models.nerf.local_field import FULL_COPY, LOCAL, LOCAL_RESIDUAL, LocalField, splits_grid_and_mlp
+from sked_ns.models.nerf.local_field import (
+    FULL_COPY,
+    LOCAL,
+    LOCAL_RESIDUAL,
+    LocalField,
+    LocalResidual,
+    splits_grid_and_mlp,
+)
 
 NERF_EDIT_OWNED = SkedOptions.EDIT_OWNED | {
     # the edit's own losses
@@ -80,14 +87,16 @@ class SkedMixin(LocalEdit, SkedEdit):
         # The appearance of random views is the average embedding: keep it as trained.
         if getattr(self.field, "embedding_appearance", None) is not None:
             self.field.embedding_appearance.requires_grad_(False)
-        # The local edit (local_field.py) owns its colour; the full copy gets the colour residual.
+        # The local residual (local_field.py) owns its colour; the local field and the full copy get the colour residual.
         if self.config.nerf_edit_field == LOCAL and not splits_grid_and_mlp(self.field):
             CONSOLE.print("The base's hash grid and MLP are fused (tiny-cuda-nn), so the edit cannot read the grid's "
                           "features: it trains a copy of the whole field (--pipeline.model.nerf-edit-field full-copy).")
             self.config.nerf_edit_field = FULL_COPY
         self.local_field = self._local_edit() if self.config.nerf_edit_field in (LOCAL, LOCAL_RESIDUAL) else None
+        self.hull_proposal = None  # nerfacto's LocalField edit learns one (nerfacto.py)
         self.colour_residual = (ColourResidual(self.edit_box.min, self.edit_box.max)
-                                if self.config.colour_residual and self.local_field is None else None)
+                                if self.config.colour_residual and not isinstance(self.local_field, LocalResidual)
+                                else None)
         self.sketch_ray_opacity = SketchRayOpacity(self.sketch_set.views, self.config.silhouette_resolution)
 
     def _steer(self, ray_bundle: RayBundle, outputs: Dict[str, Tensor]) -> Dict[str, Tensor]:

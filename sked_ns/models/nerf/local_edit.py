@@ -44,6 +44,7 @@ class LocalEdit:
     """The local edit's part of a NeRF edit model (a mixin of `field_edit.SkedMixin`)."""
 
     local_field: Optional[torch.nn.Module]  # LocalField or LocalResidual; set by SkedMixin._setup_sked
+    hull_proposal: Optional[torch.nn.Module]  # a LocalField edit's learned proposal share (nerfacto.py), else None
 
     def _local_edit(self) -> torch.nn.Module:
         """The edit's capacity over the box bounding every point with w <= keep_threshold (and the edit box): the
@@ -70,6 +71,7 @@ class LocalEdit:
             self.config.nerf_edit_field = LOCAL_RESIDUAL
             self.local_field = self._local_edit().to(self.edit_box_bounds.device)
             self.colour_residual = None  # the residual owns its colour
+            self.hull_proposal = None  # it renders with the hull as its proposal density
 
     # ---- what a checkpoint holds ---------------------------------------------------------------
     def _base_modules(self) -> List[torch.nn.Module]:
@@ -94,12 +96,15 @@ class LocalEdit:
             if is_saved_residual(state):  # e.g. 0.8's local edit under a config.yml that says "local"
                 self._use_residual()
             whole = torch.nn.Module.state_dict(self)
-            state.update({key: value for key, value in whole.items() if key.startswith(LOCAL_UNSAVED) and key not in state})
+            # The base's modules; and for a 0.9 edit a fresh hull proposal and colour residual, which start as nothing.
+            completed = LOCAL_UNSAVED + ("hull_proposal.", "colour_residual.")
+            state.update({key: value for key, value in whole.items() if key.startswith(completed) and key not in state})
         return super().load_state_dict(state, strict, *args, **kwargs)
 
     def _use_full_copy(self) -> None:
         """The edit as a trainable copy of the whole base (how 0.7 and earlier saved it)."""
         self.local_field = None
+        self.hull_proposal = None  # the copy trains its proposal networks
         self.config.nerf_edit_field = FULL_COPY
         for module in self._base_modules():
             module.requires_grad_(True)
@@ -118,6 +123,7 @@ class LocalEdit:
 
             def moved(samples: RaySamples, density: Tensor, rgb: Tensor) -> Dict[str, Tensor]:
                 outputs, inside = local(field, samples)
+                outputs = self._edit_colour(outputs, samples)  # new colours near the sketches (colour_residual.py)
                 kept = {FieldHeadNames.DENSITY: density, FieldHeadNames.RGB: rgb}  # the chunk's base outputs
                 return {key: torch.where(inside, value, kept[key].to(value.dtype)) for key, value in outputs.items()}
 

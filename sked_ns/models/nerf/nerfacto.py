@@ -24,7 +24,7 @@ from sked_ns.method.options import (  # noqa: F401  (re-exported: the public nam
     without_lpips,
 )
 from sked_ns.method.preservation import check_beta
-from sked_ns.models.nerf.density_grid import BaseDensityGrid
+from sked_ns.models.nerf.density_grid import BaseDensityGrid, HullProposal
 from sked_ns.models.nerf.field_edit import NERF_EDIT_OWNED, SkedMixin
 from sked_ns.models.nerf.local_field import LocalField
 
@@ -45,6 +45,10 @@ class SkedNerfactoModelConfig(NerfactoModelConfig, SkedOptions):
     cells a side sampled once per edit (at most each network's finest hash level; models/nerf/density_grid.py), not
     evaluated at every proposal sample of every step. 0: the networks themselves (exact, at every proposal
     sample of every step)."""
+    hull_proposal_grid: int = 32
+    """Cells a side of a local edit's learned share of its hull's proposal density, a grid over the edit box trained
+    by the interlevel loss (models/nerf/density_grid.HullProposal): its samples move to the new surface. 0: none, the
+    hull sampled evenly (0.9's local edits, which resume so)."""
     camera_optimizer: CameraOptimizerConfig = field(default_factory=lambda: CameraOptimizerConfig(mode="off"))
     """Edits keep the base's cameras."""
 
@@ -69,6 +73,7 @@ class SkedNerfactoModel(SkedMixin, NerfactoModel):
         with without_lpips():
             super().populate_modules()
         self._setup_sked()
+        self.hull_proposal = self._hull_proposal()
         self._load_base_weights()
         self._freeze_base(field=self.field, proposal_networks=self.proposal_networks)
         # Proposals see kept space as the base does, so a ray through kept space only samples as the base's did:
@@ -130,6 +135,8 @@ class SkedNerfactoModel(SkedMixin, NerfactoModel):
                 share = 1.0 if local and self.training else self.edit_box_boost()
                 if local and not self.training:  # the cells of its new mass, at the hull's full density
                     share = torch.clamp_min(self._added_mass_grid()(positions), share)
+                if local and self.hull_proposal is not None:  # where it learnt the new surface is
+                    share = share * self.hull_proposal(positions)
                 if local or share > 0:
                     hull = self.in_sketch_hull(positions)[..., None].to(value.dtype)
                     value = value + self.config.edit_box_density / diagonal * share * hull
@@ -138,6 +145,13 @@ class SkedNerfactoModel(SkedMixin, NerfactoModel):
             return density
 
         self.density_fns = [boosted(fn) for fn in self.density_fns]
+
+    def _hull_proposal(self) -> Optional[HullProposal]:
+        """A LocalField edit's learned share of its hull's proposal density (density_grid.HullProposal)."""
+        if not isinstance(self.local_field, LocalField) or self.config.hull_proposal_grid <= 0:
+            return None
+        bounds = self.edit_box_bounds.float()
+        return HullProposal(bounds[0], bounds[1], self.config.hull_proposal_grid)
 
     def get_training_callbacks(self, training_callback_attributes: TrainingCallbackAttributes) -> List[TrainingCallback]:
         """SKED's step, and the proposal sampler's update schedule; no proposal-weight anneal.
@@ -154,6 +168,8 @@ class SkedNerfactoModel(SkedMixin, NerfactoModel):
 
     def get_param_groups(self) -> Dict[str, List[Parameter]]:
         groups = self._hash_grid_groups(proposal_networks=self.proposal_networks, fields=self.field)
+        if self.hull_proposal is not None:  # a grid of log scales: the grids' rate
+            groups.setdefault("hash_grids", []).extend(self.hull_proposal.parameters())
         self.camera_optimizer.get_param_groups(param_groups=groups)
         return groups
 
@@ -203,7 +219,7 @@ class SkedNerfactoModel(SkedMixin, NerfactoModel):
         return outputs, samples, field_outputs
 
     def _sampling_losses(self, rendered: Sequence[Dict[str, Tensor]]) -> Dict[str, Tensor]:
-        if self.local_field is not None:  # a local edit's proposals are the base's: nothing to train
+        if self.local_field is not None and self.hull_proposal is None:  # the base's proposals alone: nothing to train
             return {}
         loss = sum(interlevel_loss(r["weights_list"], r["ray_samples_list"]) for r in rendered)
         return {"interlevel_loss": self.config.interlevel_loss_mult * loss}
