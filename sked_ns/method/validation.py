@@ -38,6 +38,8 @@ SMALL_FIELD_CHUNK = 1024
 """Fewer field samples per checkpointed chunk than this cost calls, not memory."""
 SMALL_PROPOSAL_GRID = 32
 """Base proposal grids coarser than this (cells a side) are warned: they blur the base's surfaces."""
+LARGE_HULL_PROPOSAL_GRID = 128
+"""Hull proposal grids finer than this (cells a side) are warned: 128^3 log scales outweigh the local field itself."""
 MAX_SEEDS = 10_000_000
 """New Gaussians a splat edit may start with: more than most whole scenes hold (each is 708 bytes with Adam's)."""
 
@@ -107,6 +109,10 @@ def option_problems(options) -> List[str]:
     if not (_is_whole(grid) and grid >= 0):
         problems.append(f"{flag('base_proposal_grid')} {grid!r}: must be a whole number of cells a side >= 0 "
                         "(0: the base's proposal networks themselves).")
+    hull = getattr(options, "hull_proposal_grid", 0)  # nerfacto bases
+    if not (_is_whole(hull) and hull >= 0):
+        problems.append(f"{flag('hull_proposal_grid')} {hull!r}: must be a whole number of cells a side >= 0 "
+                        "(0: the hull sampled evenly; default 32).")
     if not (_is_whole(options.edit_box_warmup) and options.edit_box_warmup >= 0):
         problems.append(f"{flag('edit_box_warmup')} {options.edit_box_warmup!r}: must be a whole number of "
                         "iterations >= 0.")
@@ -174,6 +180,10 @@ def warn_unusual_options(options) -> List[str]:
         messages.append(f"{flag('base_proposal_grid')} {options.base_proposal_grid}: a grid this coarse blurs the "
                         "base's proposal densities, so kept space is sampled off its surfaces while training; "
                         "the default 128 follows the networks' own detail, 0 evaluates them.")
+    if getattr(options, "hull_proposal_grid", 0) > LARGE_HULL_PROPOSAL_GRID:
+        messages.append(f"{flag('hull_proposal_grid')} {options.hull_proposal_grid}: "
+                        f"{options.hull_proposal_grid ** 3:,} log scales, more than the local field itself holds, to "
+                        "place samples the proposal sampler needs only a cell of the box to find (default 32).")
     if 0 < options.field_chunk < SMALL_FIELD_CHUNK:
         messages.append(f"{flag('field_chunk')} {options.field_chunk}: chunks this small make a step many times slower "
                         "(one call per chunk) for no memory that matters; 0 turns checkpointing off, 65536 keeps a "

@@ -164,6 +164,16 @@ def test_base_proposal_grids_below_zero_are_refused_and_coarse_ones_warned():
         check_options(SkedNerfactoModelConfig(base_proposal_grid=0))  # the networks: legal
 
 
+def test_hull_proposal_grids_below_zero_are_refused_and_huge_ones_warned():
+    with pytest.raises(SkedOptionError, match="hull-proposal-grid -2"):
+        check_options(SkedNerfactoModelConfig(hull_proposal_grid=-2))
+    with pytest.warns(SkedOptionWarning, match="hull-proposal-grid 512: 134,217,728 log scales"):
+        check_options(SkedNerfactoModelConfig(hull_proposal_grid=512))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", SkedOptionWarning)
+        check_options(SkedNerfactoModelConfig(hull_proposal_grid=0))  # 0.9's even hull: legal
+
+
 EXTREMES = [1e-12, 1e12, 1e3]
 """Values typed by mistake (a lost minus sign in an exponent, a wrong unit): each warned where outside its range."""
 
