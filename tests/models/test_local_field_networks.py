@@ -46,10 +46,25 @@ def _samples(count: int = 2048, seed: int = 1) -> RaySamples:
 
 
 @pytest.mark.parametrize("training", [True, False])
+def test_the_base_outputs_it_gives_beside_its_own_are_the_bases_bit_for_bit(training):
+    field = _field().train(training)
+    local, samples = _local(field), _samples()
+    with torch.no_grad():
+        for parameter in local.parameters():  # the edit moved: the base's outputs must not move with it
+            parameter.add_(0.3 * torch.randn(parameter.shape, generator=torch.Generator().manual_seed(3)))
+    outputs, inside, base = local(field, samples, with_base=True)
+    truth = field(samples)
+    for key in (FieldHeadNames.DENSITY, FieldHeadNames.RGB):
+        assert torch.equal(base[key], truth[key]), key
+        assert not base[key].requires_grad
+        assert not torch.equal(outputs[key][inside[..., 0]], truth[key][inside[..., 0]]), key
+
+
+@pytest.mark.parametrize("training", [True, False])
 def test_the_local_field_starts_as_the_base_bit_for_bit(training):
     field = _field().train(training)
     local, samples = _local(field), _samples()
-    outputs, inside = local(field, samples)
+    outputs, inside, _ = local(field, samples)
     base = field(samples)
     assert inside.any() and (~inside).any()
     for key in (FieldHeadNames.DENSITY, FieldHeadNames.RGB):
@@ -61,7 +76,7 @@ def test_its_grid_of_changes_acts_inside_the_box_alone():
     local, samples = _local(field), _samples()
     with torch.no_grad():
         local.encoding.hash_table.uniform_(-1.0, 1.0)
-    outputs, inside = local(field, samples)
+    outputs, inside, _ = local(field, samples)
     base = field(samples)
     outside = ~inside[:, 0]
     assert torch.equal(outputs[FieldHeadNames.DENSITY][outside], base[FieldHeadNames.DENSITY][outside])
@@ -107,7 +122,7 @@ def test_a_runaway_grid_of_changes_gives_finite_density_and_gradients(scale):
     local, samples = _local(field), _samples(256)
     with torch.no_grad():
         local.encoding.hash_table.uniform_(-scale, scale)
-    outputs, _ = local(field, samples)
+    outputs, _, _ = local(field, samples)
     (outputs[FieldHeadNames.DENSITY].sum() + outputs[FieldHeadNames.RGB].sum()).backward()
     assert outputs[FieldHeadNames.DENSITY].isfinite().all() and outputs[FieldHeadNames.RGB].isfinite().all()
     assert all(p.grad.isfinite().all() for p in local.parameters() if p.grad is not None)

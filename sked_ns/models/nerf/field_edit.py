@@ -205,14 +205,19 @@ class SkedMixin(LocalEdit, SkedEdit):
         # Model.forward applies the collider; SKED's own renders bypass forward.
         return self.collider(ray_bundle) if self.collider is not None else ray_bundle
 
-    def _edit_colour(self, field_outputs: Dict, ray_samples: RaySamples) -> Dict:
-        """The editable field's colours with the colour residual (colour_residual.py); the base's are never moved."""
+    def _edit_colour(self, field_outputs: Dict, ray_samples: RaySamples, weight: Optional[Tensor]) -> Dict:
+        """The editable field's colours with the colour residual (colour_residual.py) at samples of preservation
+        weight `weight` (the render's, computed once); the base's are never moved."""
         if self.colour_residual is None:
             return field_outputs
-        positions = ray_samples.frustums.get_positions()
         rgb = field_outputs[FieldHeadNames.RGB]
-        return {**field_outputs, FieldHeadNames.RGB: self.colour_residual.apply(rgb, positions,
-                                                                             self.preservation_weight(positions))}
+        return {**field_outputs, FieldHeadNames.RGB: self.colour_residual.apply(rgb, ray_samples.frustums.get_positions(),
+                                                                             weight)}
+
+    def _sample_weights(self, positions: Tensor) -> Optional[Tensor]:
+        """The samples' preservation weights where a render needs them (the colour residual, the exact hold), once."""
+        needed = self.colour_residual is not None or self.config.keep_threshold < 1
+        return self.preservation_weight(positions) if needed else None
 
     def editable_accumulation(self, positions: Tensor, weights: Tensor, accumulation: Tensor,
                               ray_indices: Optional[Tensor] = None) -> Tensor:
@@ -257,9 +262,10 @@ class SkedMixin(LocalEdit, SkedEdit):
         try:
             if self.local_field is not None:
                 return self._local_outputs(ray_samples, lambda s: evaluate(base_field, s))
-            return held_field_outputs(self.in_chunks(lambda s: self._edit_colour(evaluate(self.field, s), s), self.field),
-                                      self.in_chunks(lambda s: evaluate(base_field, s), base_field), ray_samples,
-                                      self._kept(ray_samples.frustums.get_positions()))
+            weight = self._sample_weights(ray_samples.frustums.get_positions())
+            edit = self.in_chunks(lambda s, w: self._edit_colour(evaluate(self.field, s), s, w), self.field)
+            return held_field_outputs(lambda s: edit(s, weight), self.in_chunks(lambda s: evaluate(base_field, s), base_field),
+                                      ray_samples, None if weight is None else self._held(weight))
         finally:
             base_field.train(mode)
 

@@ -36,6 +36,8 @@ from sked_ns.models.nerf.local_field import (
 
 LOCAL_UNSAVED = ("field.", "proposal_networks.")
 """A local edit's modules that are its base's (read from the edit's base copy, never saved with it)."""
+BASE_KEY = "base"
+"""A chunked LocalField evaluation's outputs: the base's under (this, name) beside the edit's."""
 ADDED_GRID_RESOLUTION = 32
 """Cells across a LocalField edit's box in its added-mass grid (density_grid.AddedMassGrid)."""
 
@@ -115,19 +117,20 @@ class LocalEdit:
 
     def _local_outputs(self, ray_samples: RaySamples, evaluate_base) -> Tuple[Dict, Dict]:
         """(the base's field outputs moved by the local residual, kept samples the base's; the base's)."""
+        local, colour = self.local_field, self.config.colour_residual
+        if isinstance(local, LocalField) and not getattr(self.config, "predict_normals", False):  # the base's normals need its own call
+            return self._local_field_outputs(ray_samples)
         with torch.no_grad():
             base = self.in_chunks(evaluate_base, self.base_field)(ray_samples)
-        local, colour = self.local_field, self.config.colour_residual
         if isinstance(local, LocalField):
             field = self.base_field
 
             def moved(samples: RaySamples, density: Tensor, rgb: Tensor) -> Dict[str, Tensor]:
-                outputs, inside = local(field, samples)
-                outputs = self._edit_colour(outputs, samples)  # new colours near the sketches (colour_residual.py)
+                outputs, inside, _ = local(field, samples)
                 kept = {FieldHeadNames.DENSITY: density, FieldHeadNames.RGB: rgb}  # the chunk's base outputs
                 return {key: torch.where(inside, value, kept[key].to(value.dtype)) for key, value in outputs.items()}
 
-            edited = self.in_chunks(moved, local)(ray_samples, base[FieldHeadNames.DENSITY], base[FieldHeadNames.RGB])
+            edited = self.in_chunks(moved, local, field)(ray_samples, base[FieldHeadNames.DENSITY], base[FieldHeadNames.RGB])
             return hold({**base, **edited}, base, self._kept(ray_samples.frustums.get_positions())), base
 
         def residual(points: Tensor, density: Tensor, rgb: Tensor, editable: Tensor) -> Dict[str, Tensor]:
@@ -140,6 +143,25 @@ class LocalEdit:
         edited = self.in_chunks(residual, local)(positions, base[FieldHeadNames.DENSITY], base[FieldHeadNames.RGB],
                                                  (1.0 - weight).clamp(0.0, 1.0))
         return hold({**base, **edited}, base, self._held(weight)), base
+
+    def _local_field_outputs(self, ray_samples: RaySamples) -> Tuple[Dict, Dict]:
+        """A LocalField edit's outputs and its base's from one pass: the base's grid features and direction encoding
+        are read once for both (LocalField.forward, `with_base`), the preservation weights once for the colour
+        residual and the hold."""
+        local, field = self.local_field, self.base_field
+        weight = self._sample_weights(ray_samples.frustums.get_positions())
+
+        def both(samples: RaySamples, weight: Optional[Tensor]) -> Dict[str, Tensor]:
+            outputs, inside, base = local(field, samples, with_base=True)
+            outputs = self._edit_colour(outputs, samples, weight)  # new colours near the sketches (colour_residual.py)
+            edited = {key: torch.where(inside, value, base[key].to(value.dtype)) for key, value in outputs.items()}
+            return {**edited, **{(BASE_KEY, key): value for key, value in base.items()}}
+
+        # The base's modes (a photo's appearance while training) are the render's in the backward pass's re-run too.
+        out = self.in_chunks(both, local, field)(ray_samples, weight)
+        base = {key[1]: value for key, value in out.items() if isinstance(key, tuple)}
+        edited = {key: value for key, value in out.items() if not isinstance(key, tuple)}
+        return hold({**base, **edited}, base, None if weight is None else self._held(weight)), base
 
     def edit_density_fn(self, edit_fn, base_fn, proposal: bool = False):
         """The edit's density for samplers and occupancy grids: the base's at kept points; elsewhere `edit_fn` (a

@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import copy
 import math
-from typing import Dict, Tuple
+from typing import Dict, Optional, Tuple
 
 import numpy as np
 import torch
@@ -206,10 +206,12 @@ class LocalField(torch.nn.Module):
         inside = ((points >= low) & (points <= high)).all(dim=-1, keepdim=True)
         return inside, ((points - low) / (high - low).clamp_min(1e-9)).clamp(0.0, 1.0)
 
-    def density(self, field: torch.nn.Module, positions: Tensor, added: bool = False) -> Tuple[Tensor, Tensor, Tensor]:
+    def density(self, field: torch.nn.Module, positions: Tensor, added: bool = False,
+                base: Optional[list] = None) -> Tuple[Tensor, Tensor, Tensor]:
         """(density (..., 1), geometry features, inside (..., 1)) at positions: NerfactoField.get_density with the
         base's features moved by delta and the density MLP's copy. `added`: the density's excess over the base's
-        (the base's MLP on the base's features) instead."""
+        (the base's MLP on the base's features) instead. `base`: a list the base's own (density, geometry) from the
+        same features is appended to (NerfactoField.get_density's, bit for bit), without gradient."""
         unit = normalised_positions(field, positions.detach())
         selector = ((unit > 0.0) & (unit < 1.0)).all(dim=-1, keepdim=True)
         unit = (unit * selector).reshape(-1, 3)
@@ -218,23 +220,32 @@ class LocalField(torch.nn.Module):
         inside, in_box = self._inside(positions)
         moved = features + self.encoding(in_box.reshape(-1, 3)) * inside.reshape(-1, 1)
         density, geometry = self._activate(field, self.density_mlp(moved), positions, selector)
-        if added:
-            with torch.no_grad():
-                base, _ = self._activate(field, field.mlp_base.model[1](features), positions, selector)
-            density = (density - base).clamp_min(0.0) * inside
+        if added or base is not None:
+            with torch.no_grad():  # the base's log density uncapped, as NerfactoField's
+                own = self._activate(field, field.mlp_base.model[1](features), positions, selector, cap=False)
+            if base is not None:
+                base.append(own)
+            if added:
+                density = (density - own[0]).clamp_min(0.0) * inside
         return density, geometry, inside
 
     @staticmethod
-    def _activate(field: torch.nn.Module, out: Tensor, positions: Tensor, selector: Tensor) -> Tuple[Tensor, Tensor]:
+    def _activate(field: torch.nn.Module, out: Tensor, positions: Tensor, selector: Tensor,
+                  cap: bool = True) -> Tuple[Tensor, Tensor]:
         out = out.reshape(*positions.shape[:-1], -1)
         before_activation, geometry = torch.split(out, [1, out.shape[-1] - 1], dim=-1)
         # nerfstudio's trunc_exp truncates its gradient only: capped, a runaway grid of changes stays finite.
-        before_activation = before_activation.to(positions).clamp_max(LOG_DENSITY_CAP)
+        before_activation = before_activation.to(positions)
+        before_activation = before_activation.clamp_max(LOG_DENSITY_CAP) if cap else before_activation
         return field.average_init_density * trunc_exp(before_activation) * selector, geometry
 
-    def forward(self, field: torch.nn.Module, ray_samples: RaySamples) -> Tuple[Dict, Tensor]:
-        """(density and colour at the samples, inside (..., 1)): NerfactoField's outputs with the copies."""
-        density, geometry, inside = self.density(field, ray_samples.frustums.get_positions())
+    def forward(self, field: torch.nn.Module, ray_samples: RaySamples,
+                with_base: bool = False) -> Tuple[Dict, Tensor, Optional[Dict]]:
+        """(density and colour at the samples, inside (..., 1), and `with_base` the base's own there: NerfactoField's
+        outputs from the same grid features and direction encoding, bit for bit, without gradient; else None):
+        NerfactoField's outputs with the copies."""
+        base: Optional[list] = [] if with_base else None
+        density, geometry, inside = self.density(field, ray_samples.frustums.get_positions(), base=base)
         directions = get_normalized_directions(ray_samples.frustums.directions).reshape(-1, 3)
         head_in = [field.direction_encoding(directions), geometry.reshape(directions.shape[0], -1)]
         if field.embedding_appearance is not None:  # a photo's while training, else the average or zeros (as set)
@@ -245,7 +256,14 @@ class LocalField(torch.nn.Module):
                 appearance = appearance if field.use_average_appearance_embedding else torch.zeros_like(appearance)
             head_in.append(appearance)
         rgb = self.colour_mlp(torch.cat(head_in, dim=-1)).reshape(*density.shape[:-1], 3).to(directions)
-        return {FieldHeadNames.DENSITY: density, FieldHeadNames.RGB: rgb}, inside
+        outputs = {FieldHeadNames.DENSITY: density, FieldHeadNames.RGB: rgb}
+        if base is None:
+            return outputs, inside, None
+        base_density, base_geometry = base[0]
+        with torch.no_grad():
+            head_in[1] = base_geometry.reshape(directions.shape[0], -1)
+            base_rgb = field.mlp_head(torch.cat(head_in, dim=-1)).reshape(*density.shape[:-1], 3).to(directions)
+        return outputs, inside, {FieldHeadNames.DENSITY: base_density, FieldHeadNames.RGB: base_rgb}
 
     def extra_repr(self) -> str:
         return ", ".join(f"{key}={value}" for key, value in self.shape.items())
