@@ -94,11 +94,12 @@ def test_base_files_untouched_and_base_field_frozen(scene, edited):
     copied = model.local_field.density_mlp.state_dict()
     assert any(not torch.equal(value, base_state[f"field.mlp_base.model.1.{key}"]) for key, value in copied.items())
     # The base (frozen, or its field and proposals the edit does not train) is not in the checkpoint, nor is any
-    # guidance weight: the edit is its local field alone.
+    # guidance weight: the edit is its local field, its colour residual and its hull proposal alone.
     checkpoint = torch.load(sorted((edited["run"] / "nerfstudio_models").glob("*.ckpt"))[-1], map_location="cpu")
     top_level = {key.split(".")[1] for key in checkpoint["pipeline"] if key.startswith("_model.")}
-    assert top_level <= {"local_field", "camera_optimizer", "device_indicator_param", "_extra_state"}, top_level
-    assert "local_field" in top_level
+    own = {"local_field", "colour_residual", "hull_proposal"}
+    assert top_level <= own | {"camera_optimizer", "device_indicator_param", "_extra_state"}, top_level
+    assert own <= top_level
     assert checkpoint["pipeline"]["_model._extra_state"] == {"sked_step": ITERATIONS - 1}
 
 
