@@ -118,20 +118,10 @@ class LocalEdit:
     def _local_outputs(self, ray_samples: RaySamples, evaluate_base) -> Tuple[Dict, Dict]:
         """(the base's field outputs moved by the local residual, kept samples the base's; the base's)."""
         local, colour = self.local_field, self.config.colour_residual
-        if isinstance(local, LocalField) and not getattr(self.config, "predict_normals", False):  # the base's normals need its own call
-            return self._local_field_outputs(ray_samples)
+        if isinstance(local, LocalField):
+            return self._local_field_outputs(ray_samples, evaluate_base)
         with torch.no_grad():
             base = self.in_chunks(evaluate_base, self.base_field)(ray_samples)
-        if isinstance(local, LocalField):
-            field = self.base_field
-
-            def moved(samples: RaySamples, density: Tensor, rgb: Tensor) -> Dict[str, Tensor]:
-                outputs, inside, _ = local(field, samples)
-                kept = {FieldHeadNames.DENSITY: density, FieldHeadNames.RGB: rgb}  # the chunk's base outputs
-                return {key: torch.where(inside, value, kept[key].to(value.dtype)) for key, value in outputs.items()}
-
-            edited = self.in_chunks(moved, local, field)(ray_samples, base[FieldHeadNames.DENSITY], base[FieldHeadNames.RGB])
-            return hold({**base, **edited}, base, self._kept(ray_samples.frustums.get_positions())), base
 
         def residual(points: Tensor, density: Tensor, rgb: Tensor, editable: Tensor) -> Dict[str, Tensor]:
             inside, raw = local(points)
@@ -144,10 +134,10 @@ class LocalEdit:
                                                  (1.0 - weight).clamp(0.0, 1.0))
         return hold({**base, **edited}, base, self._held(weight)), base
 
-    def _local_field_outputs(self, ray_samples: RaySamples) -> Tuple[Dict, Dict]:
+    def _local_field_outputs(self, ray_samples: RaySamples, evaluate_base) -> Tuple[Dict, Dict]:
         """A LocalField edit's outputs and its base's from one pass: the base's grid features and direction encoding
         are read once for both (LocalField.forward, `with_base`), the preservation weights once for the colour
-        residual and the hold."""
+        residual and the hold. A base predicting normals is also called itself for them (the edit shows its base's)."""
         local, field = self.local_field, self.base_field
         weight = self._sample_weights(ray_samples.frustums.get_positions())
 
@@ -160,6 +150,9 @@ class LocalEdit:
         # The base's modes (a photo's appearance while training) are the render's in the backward pass's re-run too.
         out = self.in_chunks(both, local, field)(ray_samples, weight)
         base = {key[1]: value for key, value in out.items() if isinstance(key, tuple)}
+        if getattr(self.config, "predict_normals", False):
+            with torch.no_grad():
+                base = {**self.in_chunks(evaluate_base, field)(ray_samples), **base}
         edited = {key: value for key, value in out.items() if not isinstance(key, tuple)}
         return hold({**base, **edited}, base, None if weight is None else self._held(weight)), base
 

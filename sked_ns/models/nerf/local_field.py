@@ -206,12 +206,19 @@ class LocalField(torch.nn.Module):
         inside = ((points >= low) & (points <= high)).all(dim=-1, keepdim=True)
         return inside, ((points - low) / (high - low).clamp_min(1e-9)).clamp(0.0, 1.0)
 
-    def density(self, field: torch.nn.Module, positions: Tensor, added: bool = False,
-                base: Optional[list] = None) -> Tuple[Tensor, Tensor, Tensor]:
+    def density(self, field: torch.nn.Module, positions: Tensor, added: bool = False) -> Tuple[Tensor, Tensor, Tensor]:
         """(density (..., 1), geometry features, inside (..., 1)) at positions: NerfactoField.get_density with the
         base's features moved by delta and the density MLP's copy. `added`: the density's excess over the base's
-        (the base's MLP on the base's features) instead. `base`: a list the base's own (density, geometry) from the
-        same features is appended to (NerfactoField.get_density's, bit for bit), without gradient."""
+        (the base's MLP on the base's features) instead."""
+        density, geometry, inside, base = self._density(field, positions, with_base=added)
+        if added:
+            density = (density - base[0]).clamp_min(0.0) * inside
+        return density, geometry, inside
+
+    def _density(self, field: torch.nn.Module, positions: Tensor,
+                 with_base: bool) -> Tuple[Tensor, Tensor, Tensor, Optional[Tuple[Tensor, Tensor]]]:
+        """`density`'s (density, geometry, inside) and, `with_base`, the base's own (density, geometry) from the same
+        features (NerfactoField.get_density's, bit for bit: its log density uncapped), without gradient."""
         unit = normalised_positions(field, positions.detach())
         selector = ((unit > 0.0) & (unit < 1.0)).all(dim=-1, keepdim=True)
         unit = (unit * selector).reshape(-1, 3)
@@ -220,14 +227,11 @@ class LocalField(torch.nn.Module):
         inside, in_box = self._inside(positions)
         moved = features + self.encoding(in_box.reshape(-1, 3)) * inside.reshape(-1, 1)
         density, geometry = self._activate(field, self.density_mlp(moved), positions, selector)
-        if added or base is not None:
-            with torch.no_grad():  # the base's log density uncapped, as NerfactoField's
-                own = self._activate(field, field.mlp_base.model[1](features), positions, selector, cap=False)
-            if base is not None:
-                base.append(own)
-            if added:
-                density = (density - own[0]).clamp_min(0.0) * inside
-        return density, geometry, inside
+        base = None
+        if with_base:
+            with torch.no_grad():
+                base = self._activate(field, field.mlp_base.model[1](features), positions, selector, cap=False)
+        return density, geometry, inside, base
 
     @staticmethod
     def _activate(field: torch.nn.Module, out: Tensor, positions: Tensor, selector: Tensor,
@@ -244,8 +248,7 @@ class LocalField(torch.nn.Module):
         """(density and colour at the samples, inside (..., 1), and `with_base` the base's own there: NerfactoField's
         outputs from the same grid features and direction encoding, bit for bit, without gradient; else None):
         NerfactoField's outputs with the copies."""
-        base: Optional[list] = [] if with_base else None
-        density, geometry, inside = self.density(field, ray_samples.frustums.get_positions(), base=base)
+        density, geometry, inside, base = self._density(field, ray_samples.frustums.get_positions(), with_base)
         directions = get_normalized_directions(ray_samples.frustums.directions).reshape(-1, 3)
         head_in = [field.direction_encoding(directions), geometry.reshape(directions.shape[0], -1)]
         if field.embedding_appearance is not None:  # a photo's while training, else the average or zeros (as set)
@@ -259,7 +262,7 @@ class LocalField(torch.nn.Module):
         outputs = {FieldHeadNames.DENSITY: density, FieldHeadNames.RGB: rgb}
         if base is None:
             return outputs, inside, None
-        base_density, base_geometry = base[0]
+        base_density, base_geometry = base
         with torch.no_grad():
             head_in[1] = base_geometry.reshape(directions.shape[0], -1)
             base_rgb = field.mlp_head(torch.cat(head_in, dim=-1)).reshape(*density.shape[:-1], 3).to(directions)
