@@ -12,7 +12,7 @@ from nerfstudio.field_components.field_heads import FieldHeadNames
 from nerfstudio.field_components.spatial_distortions import SceneContraction
 from nerfstudio.fields.nerfacto_field import NerfactoField
 
-from sked_ns.models.nerf.density_grid import LOG_SCALE_BOUND, OCCUPIED, AddedMassGrid, HullProposal
+from sked_ns.models.nerf.density_grid import LOG_SCALE_BOUND, OCCUPIED, PROPOSAL_RATE, AddedMassGrid, HullProposal
 from sked_ns.models.nerf.local_field import LocalField, box_grid_shape, splits_grid_and_mlp
 
 LOW, HIGH = np.array([-0.3, -0.3, -0.3]), np.array([0.3, 0.3, 0.3])
@@ -177,3 +177,22 @@ def test_the_hull_proposal_starts_at_one_and_stays_finite_however_far_it_runs():
         value = proposal(points)
         assert torch.isfinite(value).all() and value.min() > 0
         assert torch.allclose(value, torch.full_like(value, float(np.exp(np.sign(runaway) * LOG_SCALE_BOUND))), rtol=1e-5)
+
+
+def test_the_hull_proposal_reads_its_grid_at_its_rate_and_an_edit_saved_without_one_as_it_was_saved():
+    low, high = torch.tensor([-0.3, -0.3, -0.3]), torch.tensor([0.3, 0.3, 0.3])
+    points = torch.rand(512, 3, generator=torch.Generator().manual_seed(3)) * 0.6 - 0.3
+    proposal = HullProposal(low, high, 4)
+    with torch.no_grad():
+        proposal.log_scale.fill_(0.25)
+    expected = float(np.exp(0.25 * PROPOSAL_RATE))
+    assert torch.allclose(proposal(points), torch.full((512, 1), expected), rtol=1e-5)
+    # A new edit's checkpoint carries its rate; one saved before the rate (0.10) reads its grid as s itself.
+    reloaded = HullProposal(low, high, 4, rate=1.0)
+    reloaded.load_state_dict(proposal.state_dict())
+    assert torch.equal(reloaded(points), proposal(points))
+    saved_without = {"log_scale": proposal.log_scale.detach().clone()}
+    old = HullProposal(low, high, 4)
+    old.load_state_dict(saved_without)
+    assert float(old.rate) == 1.0
+    assert torch.allclose(old(points), torch.full((512, 1), float(np.exp(0.25))), rtol=1e-5)

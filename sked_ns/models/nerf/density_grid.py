@@ -25,6 +25,9 @@ OCCUPIED = 0.01
 """AddedMassGrid: the opacity over one lattice step above which a cell holds new mass (instant-ngp's threshold)."""
 LOG_SCALE_BOUND = 10.0
 """HullProposal: |s| is read at most this (e^10 times the hull's density is opaque over any proposal step)."""
+PROPOSAL_RATE = 5.0
+"""HullProposal: s is this times its stored grid, so a step moves s this many times the hash grids' rate (docs/method.md,
+Local edit: Sampling)."""
 
 
 def cell_centres(resolution: int, device) -> Tensor:
@@ -134,16 +137,23 @@ class HullProposal(torch.nn.Module):
     samples stay spread evenly through the hull: the field learns a haze that renders grainy wherever the samples fall
     elsewhere. nerfacto's interlevel loss trains s as nerfacto trains its proposal networks: the sampler's density
     moves to where the edit's weights are, so new content is sampled at its surface, in training and in every render.
+    Adam moves a parameter by about its rate a step whatever the gradient's size, so s is `rate` times the stored grid:
+    at the grids' rate alone s stayed within a few units over a whole edit, too little to leave the empty hull unsampled.
     """
 
-    def __init__(self, low: Tensor, high: Tensor, resolution: int) -> None:
+    def __init__(self, low: Tensor, high: Tensor, resolution: int, rate: float = PROPOSAL_RATE) -> None:
         super().__init__()
         self.register_buffer("box", torch.stack([low, high]).float(), persistent=False)
+        self.register_buffer("rate", torch.tensor(float(rate), device=low.device))  # saved: each edit reads its own
         self.log_scale = torch.nn.Parameter(torch.zeros(1, 1, resolution, resolution, resolution, device=low.device))
+
+    def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs) -> None:
+        state_dict.setdefault(prefix + "rate", torch.ones(()))  # 0.10 saved none: it read its grid as s itself
+        super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
 
     def forward(self, positions: Tensor) -> Tensor:
         """exp(s) (..., 1) at positions (..., 3); the border cells' value outside the box (the hull lies inside it)."""
         unit = (positions.detach().float() - self.box[0]) / (self.box[1] - self.box[0]).clamp_min(1e-9)
         value = torch.nn.functional.grid_sample(self.log_scale, (unit * 2.0 - 1.0).reshape(1, 1, 1, -1, 3),
-                                                mode="bilinear", padding_mode="border", align_corners=False)
+                                                mode="bilinear", padding_mode="border", align_corners=False) * self.rate
         return torch.exp(value.reshape(*positions.shape[:-1], 1).clamp(-LOG_SCALE_BOUND, LOG_SCALE_BOUND)).to(positions.dtype)
