@@ -297,7 +297,8 @@ _SOFT_HOLD = ["--pipeline.model.keep-threshold", "1"]  # the paper's soft hold (
 VARIANTS = {"default": [],
             # NeRF bases: what an edit trains, pinned whatever the default is.
             "local-field (NeRF edits: the base's networks over the edit box, a grid of changes and copies of its MLPs, "
-            "a learnt hull proposal and the colour residual)": ["--pipeline.model.nerf-edit-field", "local"],
+            "a learnt hull proposal at five times the grids' rate and the colour residual)": [
+                "--pipeline.model.nerf-edit-field", "local"],
             "local-field-0.9 (the local field as 0.9 made it: no hull proposal, no colour residual)": [
                 "--pipeline.model.nerf-edit-field", "local", "--pipeline.model.hull-proposal-grid", "0",
                 *_BEFORE_RESIDUAL],
