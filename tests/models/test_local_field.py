@@ -13,6 +13,7 @@ from nerfstudio.field_components.field_heads import FieldHeadNames
 from sked_ns.engine.edit_run import edit_config
 from sked_ns.engine.trainer import resolve_edit
 from sked_ns.evaluation.render import render_at, render_base_at
+from sked_ns.models.nerf.density_grid import PROPOSAL_RATE
 from sked_ns.models.nerf.local_field import MAX_LOG2_TABLE, MIN_LOG2_TABLE, LocalResidual, local_grid_shape
 
 ONE = torch.ones(())  # 1 - w: fully editable
@@ -254,6 +255,7 @@ def test_the_interlevel_loss_teaches_a_local_edit_where_its_new_content_is(scene
     """nerfacto's interlevel loss trains the hull proposal (density_grid.HullProposal) as it trains proposal networks."""
     model = _model(scene, tmp_path).train()
     assert torch.equal(model.hull_proposal.log_scale, torch.zeros_like(model.hull_proposal.log_scale))
+    assert float(model.hull_proposal.rate) == PROPOSAL_RATE  # a fresh edit's, whatever it loaded at set-up
     outputs, _, _ = model._render(model._collide(_view_rays(model.sketch_set.views[0], 16)))
     losses = model._sampling_losses([outputs])
     assert torch.isfinite(losses["interlevel_loss"])

@@ -191,6 +191,9 @@ def test_the_hull_proposal_reads_its_grid_at_its_rate_and_an_edit_saved_without_
     reloaded = HullProposal(low, high, 4, rate=1.0)
     reloaded.load_state_dict(proposal.state_dict())
     assert torch.equal(reloaded(points), proposal(points))
+    outer = torch.nn.ModuleDict({"hull_proposal": HullProposal(low, high, 4), "other": torch.nn.Linear(1, 1)})
+    outer.load_state_dict({"other.weight": torch.ones(1, 1)}, strict=False)  # a state without it keeps its rate
+    assert float(outer["hull_proposal"].rate) == PROPOSAL_RATE
     saved_without = {"log_scale": proposal.log_scale.detach().clone()}
     old = HullProposal(low, high, 4)
     old.load_state_dict(saved_without)

@@ -148,7 +148,8 @@ class HullProposal(torch.nn.Module):
         self.log_scale = torch.nn.Parameter(torch.zeros(1, 1, resolution, resolution, resolution, device=low.device))
 
     def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs) -> None:
-        state_dict.setdefault(prefix + "rate", torch.ones(()))  # 0.10 saved none: it read its grid as s itself
+        if prefix + "log_scale" in state_dict:  # a saved grid without its rate (0.10's) read itself as s
+            state_dict.setdefault(prefix + "rate", torch.ones(()))
         super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
 
     def forward(self, positions: Tensor) -> Tensor:
