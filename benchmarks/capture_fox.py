@@ -106,7 +106,7 @@ def check(data: Path, sketches: Path) -> dict:
     return report
 
 
-def edit_arguments(data: Path, sketches: Path, base: Path, out: Path, iterations: int) -> list:
+def edit_arguments(data: Path, sketches: Path, base: Path, out: Path, iterations: int, primitive: str = "cone") -> list:
     """`ns-train sked ...` as a user types it for a measured edit of a capture on a CPU (docs/captures.md)."""
     dataparser = ["--center-method", "focus"] if "center_method: focus" in (base / "config.yml").read_text() else []
     return ["sked", "--load-dir", str(base), "--sketches", str(sketches), "--output-dir", str(out),
@@ -119,7 +119,7 @@ def edit_arguments(data: Path, sketches: Path, base: Path, out: Path, iterations
             # Random views where the photos were, relative to the first sketch view: the capture is an arc.
             "--pipeline.datamanager.azimuth-range", "-60", "60",
             "--pipeline.datamanager.elevation-range", "-10", "45",
-            "pipeline.model.guidance:reference", "--pipeline.model.guidance.primitive", "cone",
+            "pipeline.model.guidance:reference", "--pipeline.model.guidance.primitive", primitive,
             "nerfstudio-data", *dataparser, "--data", str(data)]
 
 
@@ -178,13 +178,16 @@ def main(argv=None) -> None:
     for name in ("data", "sketches", "base", "out"):
         edit.add_argument(name, type=Path)
     edit.add_argument("--iterations", type=int, default=100)
+    edit.add_argument("--primitive", choices=("cone", "ball", "box"), default="cone",
+                      help="the composite target's part (a ball fills the hat region's sketches; a cone part of them)")
     edit.add_argument("--output", type=Path, help="measure the edit and write the results here (JSON)")
     edit.add_argument("--strip", type=Path, help="a PNG of photo | base | edit | difference at three held-out photos")
     arguments = parser.parse_args(argv)
     if arguments.command == "edit":
         if arguments.output is not None:
             harness.claim("capture_fox.py", arguments.output)
-        command = edit_arguments(arguments.data, arguments.sketches, arguments.base, arguments.out, arguments.iterations)
+        command = edit_arguments(arguments.data, arguments.sketches, arguments.base, arguments.out, arguments.iterations,
+                                 arguments.primitive)
         timing = run_edit(command)
         run = max((arguments.out / "fox" / "sked").iterdir())
         result = {"command": "ns-train " + " ".join(command), "run": str(run), "iterations": arguments.iterations,

@@ -15,7 +15,8 @@ docs/captures.md). At every photo nerfstudio held out for evaluation (its own sp
   changed pixels (intersection over union), and the edit's PSNR against the composite inside the silhouette.
 
 At the sketch views (SKETCH_RESOLUTION px, as sked-eval): IoS of the edit and its base (any opacity, so the wall
-behind a sketch fills it before any edit) and region IoS (opacity of content near the sketches only).
+behind a sketch fills it before any edit), region IoS (opacity of content near the sketches only), and the
+primitive's own IoS (its silhouette's share of the sketch: the most region IoS an edit that made the target can reach).
 With --strip, a PNG of photo | base | edit | |edit - base| x DIFFERENCE_GAIN at the first held-out photos.
 """
 
@@ -37,10 +38,12 @@ DIFFERENCE_GAIN = 4
 """The strip's difference column: |edit - base| times this, so a small change shows."""
 
 
-def sketch_views(model) -> dict:
-    """IoS and region IoS of the edit and its frozen base at each sketch view."""
+def sketch_views(model, primitive=None) -> dict:
+    """IoS and region IoS of the edit and its frozen base at each sketch view, and with `primitive` the IoS of its
+    silhouette ("ios_target": what an edit that made exactly the target's part would fill of the sketch)."""
     from sked_ns.evaluation.metrics import intersection_over_sketch
     from sked_ns.evaluation.render import render_at, render_base_at, resized_mask
+    from sked_ns.sketches.sketch_set import sketch_view_at
 
     rows = []
     for view in model.sketch_set.views:
@@ -48,6 +51,10 @@ def sketch_views(model) -> dict:
         mask = resized_mask(view, SKETCH_RESOLUTION)
         row = {"view": view.name, "ios": intersection_over_sketch(edited["accumulation"], mask),
                "ios_base": intersection_over_sketch(base["accumulation"], mask)}
+        if primitive is not None:
+            rays = sketch_view_at(view, SKETCH_RESOLUTION)[0].generate_rays(camera_indices=0, keep_shape=True)
+            hit = primitive.cast(rays.origins.double(), rays.directions.double())["hit"]
+            row["ios_target"] = intersection_over_sketch(hit.float(), mask)
         if "preservation_weight" in edited:
             row["ios_region"] = intersection_over_sketch(1.0 - edited["preservation_weight"], mask)
             row["ios_region_base"] = intersection_over_sketch(1.0 - base["preservation_weight"], mask)
@@ -131,7 +138,7 @@ def measure(edit: Path, photos: int = 0, strip: Optional[Path] = None, strip_pho
     if tiles:
         save_strip(tiles, strip)
     return {"edit": str(edit), "changed_threshold": CHANGED, "photos": rows, "mean": mean,
-            **({"sketch_views": sketch_views(model)} if sketch else {}), **({"strip": str(strip)} if tiles else {})}
+            **({"sketch_views": sketch_views(model, primitive)} if sketch else {}), **({"strip": str(strip)} if tiles else {})}
 
 
 def main(argv=None) -> None:
