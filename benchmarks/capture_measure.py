@@ -38,8 +38,8 @@ DIFFERENCE_GAIN = 4
 """The strip's difference column: |edit - base| times this, so a small change shows."""
 
 
-def sketch_views(model, primitive=None) -> dict:
-    """IoS and region IoS of the edit and its frozen base at each sketch view, and with `primitive` the IoS of its
+def sketch_views(model, primitive) -> dict:
+    """IoS and region IoS of the edit and its frozen base at each sketch view, and the IoS of the `primitive`'s
     silhouette ("ios_target": what an edit that made exactly the target's part would fill of the sketch)."""
     from sked_ns.evaluation.metrics import intersection_over_sketch
     from sked_ns.evaluation.render import render_at, render_base_at, resized_mask
@@ -51,10 +51,9 @@ def sketch_views(model, primitive=None) -> dict:
         mask = resized_mask(view, SKETCH_RESOLUTION)
         row = {"view": view.name, "ios": intersection_over_sketch(edited["accumulation"], mask),
                "ios_base": intersection_over_sketch(base["accumulation"], mask)}
-        if primitive is not None:
-            rays = sketch_view_at(view, SKETCH_RESOLUTION)[0].generate_rays(camera_indices=0, keep_shape=True)
-            hit = primitive.cast(rays.origins.double(), rays.directions.double())["hit"]
-            row["ios_target"] = intersection_over_sketch(hit.float(), mask)
+        rays = sketch_view_at(view, SKETCH_RESOLUTION)[0].generate_rays(camera_indices=0, keep_shape=True)
+        hit = primitive.cast(rays.origins.double(), rays.directions.double())["hit"]
+        row["ios_target"] = intersection_over_sketch(hit.float(), mask)
         if "preservation_weight" in edited:
             row["ios_region"] = intersection_over_sketch(1.0 - edited["preservation_weight"], mask)
             row["ios_region_base"] = intersection_over_sketch(1.0 - base["preservation_weight"], mask)
