@@ -381,11 +381,15 @@ def _variant(tag: str) -> str:
     return names[0]
 
 
-def rescore(output: Path, work: Path) -> None:
-    """Adds `sketch_view_fill` to recorded runs whose edit is on disk: the newest edit of the run's tag, taken
-    only if its sked-eval JSON holds the recorded IoS (a later run of the same tag replaces the files)."""
+def rescore(output: Path, work: Path, variants: List[str], scenes: Optional[List[str]]) -> None:
+    """Scores again, with this checkout, the recorded runs whose edits are still under `work` (sked-eval and the sketch
+    views): for a change to how an edit renders, the same trained edits, free of training's run-to-run spread. The
+    newest edit of a run's tag is taken only if its sked-eval JSON holds the recorded IoS (a later run of the same tag
+    replaces the files); the row keeps what it held under `scored_before` and names the commit that scored it."""
     results = json.loads(output.read_text())
     for row in results["runs"]:
+        if row["variant"] not in variants or (scenes and row["scene"] not in scenes):
+            continue
         tag = _run_tag(row.get("base", "nerfacto"), row["protocol"], row["variant"], row.get("seed"))
         scene_work = work / row["scene"]
         evaluation, edits = scene_work / f"{tag}.eval.json", scene_work / "edits" / tag / row["scene"] / "sked"
@@ -394,20 +398,26 @@ def rescore(output: Path, work: Path) -> None:
         if abs(json.loads(evaluation.read_text())["mean"]["ios"] - row["summary"]["ios"]) > 1e-9:
             print(f"{row['scene']} {tag}: the edit on disk is a later run; left as recorded")
             continue
+        paths = {key: scene_work / key for key in ("target", "sketches")}
         try:
-            row["summary"].update(sketch_view_fill(max(edits.iterdir()), row["scene"], scene_work / "sketches"))
-        except ValueError as error:  # e.g. an edit saved by an older version of sked_ns
+            edit_run = max(edits.iterdir())
+            metrics = score(edit_run, paths, evaluation, scene_work / f"{tag}.eval.log")
+            summary = {**summarise(metrics), **sketch_view_fill(edit_run, row["scene"], paths["sketches"])}
+        except (ValueError, RuntimeError) as error:  # e.g. an edit saved by an older sked_ns
             print(f"{row['scene']} {tag}: not re-scored: {error}".splitlines()[0])
             continue
+        row["scored_before"] = {"commit": row.get("scored_by", row["commit"]), "summary": row["summary"]}
+        row.update(summary=summary, scored_by=harness.commit())
+        harness.write_results(output, results)
         print(table({"runs": [row]}).splitlines()[-1], flush=True)
-    harness.write_results(output, results)
     print(table(results))
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--quick", action="store_true", help="hat only, 4 edit iterations, a 30-iteration base")
-    parser.add_argument("--scenes", default="hat,vase,crate", help="comma-separated: " + ", ".join(TUNED + HELD_OUT + UNBOUNDED))
+    parser.add_argument("--scenes", default=None,
+                        help="comma-separated (default hat,vase,crate): " + ", ".join(TUNED + HELD_OUT + UNBOUNDED))
     parser.add_argument("--protocols", default=None,
                         help=f"comma-separated, of {', '.join(PROTOCOLS)} (default {','.join(DEFAULT_PROTOCOLS)}; "
                              "with --step-time: the first one's render size)")
@@ -424,14 +434,16 @@ def main() -> None:
                         help="the edits' --machine.seed (default: nerfstudio's, 42): a run-to-run spread; bases keep theirs")
     parser.add_argument("--replot", action="store_true")
     parser.add_argument("--rescore", action="store_true",
-                        help="re-score the sketch views of the recorded runs whose edits are still under --work")
+                        help="score again, with this checkout, the recorded runs (of --variants, and --scenes if given) "
+                             "whose edits are still under --work: for a change to rendering only")
     args = parser.parse_args()
     if args.replot:
         print(table(json.loads(args.output.read_text())))
         return
     if args.rescore:
         harness.claim("edit_quality.py", args.output, args.work)
-        rescore(args.output, args.work)
+        rescore(args.output, args.work, [_variant(tag) for tag in args.variants.split(",")],
+                args.scenes.split(",") if args.scenes else None)
         return
     if args.step_time:
         from sked_ns.demo.scenes.catalogue import write_benchmark
@@ -445,7 +457,7 @@ def main() -> None:
     harness.claim("edit_quality.py", args.output, args.work)
     from sked_ns.demo.scenes.catalogue import write_benchmark
 
-    scenes = ["hat"] if args.quick else args.scenes.split(",")
+    scenes = ["hat"] if args.quick else (args.scenes or "hat,vase,crate").split(",")
     protocols = {"quick": {"iterations": 4, "resolution": 16, "samples_per_ray_scale": 0.25}} if args.quick else {
         name: PROTOCOLS[name] for name in (args.protocols or ",".join(DEFAULT_PROTOCOLS)).split(",")}
     variants = ["default"] if args.quick else [_variant(tag) for tag in args.variants.split(",")]

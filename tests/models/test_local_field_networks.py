@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from types import SimpleNamespace
 
 import numpy as np
@@ -12,7 +13,7 @@ from nerfstudio.field_components.field_heads import FieldHeadNames
 from nerfstudio.field_components.spatial_distortions import SceneContraction
 from nerfstudio.fields.nerfacto_field import NerfactoField
 
-from sked_ns.models.nerf.density_grid import LOG_SCALE_BOUND, OCCUPIED, PROPOSAL_RATE, AddedMassGrid, HullProposal
+from sked_ns.models.nerf.density_grid import LOG_SCALE_BOUND, MISSED_OPACITY, PROPOSAL_RATE, AddedMassGrid, HullProposal
 from sked_ns.models.nerf.local_field import LocalField, box_grid_shape, splits_grid_and_mlp
 
 LOW, HIGH = np.array([-0.3, -0.3, -0.3]), np.array([0.3, 0.3, 0.3])
@@ -151,9 +152,10 @@ def test_the_added_mass_grid_is_zero_until_the_edit_adds_mass_and_only_in_its_bo
     grid.refresh(lambda p: torch.zeros(len(p), 1), version=0)
     assert torch.equal(grid(points), torch.zeros(len(points), 1)), "a fresh edit samples as its base, exactly"
     corner = lambda p: ((p > 0.1).all(dim=-1, keepdim=True)).float()  # noqa: E731
-    # Mass just opaque enough over a lattice step, and far below it.
+    # Mass twice and half as opaque over a lattice step as its share of the largest opacity a ray may miss.
     step = float((high - low).max()) / 16
-    for density, on in ((2.0 * OCCUPIED / step, True), (0.5 * OCCUPIED / step, False)):
+    per_step = -math.log1p(-MISSED_OPACITY) * step / float((high - low).norm())
+    for density, on in ((2.0 * per_step / step, True), (0.5 * per_step / step, False)):
         grid.refresh(lambda p: density * corner(p), version=1)
         value = grid(points)
         in_box = ((points >= low) & (points <= high)).all(dim=-1)

@@ -12,6 +12,7 @@ base's own); docs/benchmarks.md (Step census) says what it changes.
 
 from __future__ import annotations
 
+import math
 from typing import Optional
 
 import torch
@@ -21,8 +22,9 @@ from torch import Tensor
 
 BUILD_CHUNK = 1 << 18
 """Grid points per network call while the grid is built (bounds its transient memory)."""
-OCCUPIED = 0.01
-"""AddedMassGrid: the opacity over one lattice step above which a cell holds new mass (instant-ngp's threshold)."""
+MISSED_OPACITY = 0.01
+"""AddedMassGrid: the most opacity a ray through the whole box may cross in cells left off (instant-ngp's per-cell
+threshold, spread over the ray's lattice steps)."""
 LOG_SCALE_BOUND = 10.0
 """HullProposal: |s| is read at most this (e^10 times the hull's density is opaque over any proposal step)."""
 PROPOSAL_RATE = 5.0
@@ -97,9 +99,11 @@ class AddedMassGrid(torch.nn.Module):
     content: the sampler adds a density on this grid's cells (nerfacto.py), so new mass is sampled where it is. Built
     from the field as it is (`refresh`) for a render outside training (training samples the whole hull); all 0
     at a fresh edit, so the edit's samples start as the base's bit for bit. A cell is on where, at any point of a
-    lattice twice as fine, the edited density's excess over the base's makes one lattice step more than
-    `OCCUPIED` opaque (instant-ngp's occupancy test): the sampler's density there is a fixed one, not the excess,
-    whose steep values would end a proposal's ray at the cell's front face and hide what lies behind it.
+    lattice twice as fine, the excess of the edited density over the base's has an optical depth over one lattice step
+    above `MISSED_OPACITY`'s share of the box's diagonal (in lattice steps), so the cells left off add up to at most
+    that opacity along any ray (instant-ngp's 0.01 a step left the new part's faint rim unsampled: docs/method.md,
+    Local edit). The sampler's density there is a fixed one, not the excess, whose steep values would end a
+    proposal's ray at the cell's front face and hide what lies behind it.
     """
 
     def __init__(self, low: Tensor, high: Tensor, resolution: int) -> None:
@@ -117,7 +121,8 @@ class AddedMassGrid(torch.nn.Module):
         values = torch.cat([added_density(chunk) for chunk in points.split(BUILD_CHUNK)]).float()
         lattice_step = float((self.box[1] - self.box[0]).max()) / fine
         excess = torch.nn.functional.max_pool3d(values.reshape(1, 1, fine, fine, fine), 2)
-        self.grid = (-torch.expm1(-excess * lattice_step) > OCCUPIED).float()
+        crossing = float((self.box[1] - self.box[0]).norm()) / lattice_step  # lattice steps on the box's diagonal
+        self.grid = (excess * lattice_step > -math.log1p(-MISSED_OPACITY) / crossing).float()
         self.version = int(version)
 
     def forward(self, positions: Tensor) -> Tensor:
