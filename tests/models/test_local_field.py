@@ -14,7 +14,7 @@ from sked_ns.engine.edit_run import edit_config
 from sked_ns.engine.trainer import resolve_edit
 from sked_ns.evaluation.render import render_at, render_base_at
 from sked_ns.models.nerf.density_grid import PROPOSAL_RATE
-from sked_ns.models.nerf.local_field import MAX_LOG2_TABLE, MIN_LOG2_TABLE, LocalResidual, local_grid_shape
+from sked_ns.models.nerf.local_field import MAX_LOG2_TABLE, MIN_LOG2_TABLE, LocalField, LocalResidual, local_grid_shape
 
 ONE = torch.ones(())  # 1 - w: fully editable
 SHAPE = {"num_levels": 4, "min_res": 4, "max_res": 32, "log2_hashmap_size": 12, "features_per_level": 2}
@@ -273,3 +273,35 @@ def test_a_local_field_saved_without_hull_proposal_or_colour_residual_loads(scen
     model.load_state_dict(state)
     view = model.sketch_set.views[0]
     assert torch.equal(render_at(model, view, 24)["rgb"], render_at(saved_by, view, 24)["rgb"])
+
+
+def test_a_base_that_predicts_normals_gets_a_local_field_and_its_normals(tmp_path, monkeypatch):
+    """`ns-train nerfacto --pipeline.model.predict-normals True`: the edit is a LocalField, it starts as its base
+    bit for bit in colour and normals (the base's field is called for them), and a step's gradient reaches it."""
+    from sked_ns.demo import base as demo_base
+    from sked_ns.demo.scenes import sphere as demo_scene
+    from sked_ns.sketches.sketch_set import save_sketch_set
+
+    plain = demo_base.nerfacto_config
+
+    def with_normals(*args, **kwargs):
+        config = plain(*args, **kwargs)
+        config.pipeline.model.predict_normals = True
+        return config
+
+    monkeypatch.setattr(demo_base, "nerfacto_config", with_normals)
+    demo_scene.write_demo_dataset(tmp_path / "data")
+    run = demo_base.build_demo_base(tmp_path / "data", tmp_path / "runs", steps=30, points_per_step=2048)
+    save_sketch_set(demo_scene.demo_sketch_set(size=64), tmp_path / "sketches")
+    model = _model({"base": run, "data": tmp_path / "data", "sketches": tmp_path / "sketches"}, tmp_path / "edit")
+    assert model.config.predict_normals and isinstance(model.local_field, LocalField)
+    view = model.sketch_set.views[0]
+    rays = model._collide(_view_rays(view, 16))
+    edit, base = model.eval().get_outputs(rays), model.render_base(rays)
+    for key in ("rgb", "normals", "pred_normals"):
+        assert torch.equal(edit[key], base[key]), key
+    model.train()
+    outputs, _, field_outputs = model._render(model._collide(_view_rays(view, 16)))
+    assert torch.isfinite(outputs["normals"]).all() and torch.isfinite(outputs["pred_normals"]).all()
+    (field_outputs[FieldHeadNames.DENSITY].sum() + field_outputs[FieldHeadNames.RGB].sum()).backward()
+    assert any(p.grad is not None and p.grad.any() for p in model.local_field.parameters())
