@@ -112,6 +112,7 @@ def nerf_side(work: Path, method: str, base: Path, resolution: int, args, smalle
         "--pipeline.model.guidance-resolution", str(resolution),
         "--pipeline.model.field-chunk", str(args.field_chunk),  # the chunked step (then none): not the plan's choice
         *(["--pipeline.model.silhouette-resolution", str(args.silhouette_resolution)] if args.silhouette_resolution else []),
+        *(["--pipeline.model.nerf-edit-field", args.edit_field] if args.edit_field and method != "splatfacto" else []),
         *harness.reference_edit_tail(work),
     ]
     trainer = harness.set_up_edit(arguments, ImageGradient(part))
@@ -381,6 +382,8 @@ def main() -> None:
     parser.add_argument("--base-steps", type=int, default=30, help="fitting steps of each base")
     parser.add_argument("--timed-steps", type=int, default=1)
     parser.add_argument("--skip-unchunked", action="store_true")
+    parser.add_argument("--edit-field", choices=("local", "full-copy"), default=None,
+                        help="what a NeRF edit trains (default: the preset's); rows record it")
     parser.add_argument("--field-chunk", type=int, default=65536,
                         help="samples per checkpointed chunk of the chunked step (the plan's fallback)")
     parser.add_argument("--parts", default="steps,sd",
