@@ -178,7 +178,7 @@ def main(argv=None) -> None:
     for name in ("data", "sketches", "base", "out"):
         edit.add_argument(name, type=Path)
     edit.add_argument("--iterations", type=int, default=100)
-    edit.add_argument("--primitive", choices=("cone", "ball", "box"), default="cone",
+    edit.add_argument("--primitive", choices=("cone", "ball", "box", "hull"), default="cone",
                       help="the composite target's part (a ball fills the hat region's sketches; a cone part of them)")
     edit.add_argument("--output", type=Path, help="measure the edit and write the results here (JSON)")
     edit.add_argument("--strip", type=Path, help="a PNG of photo | base | edit | difference at three held-out photos")

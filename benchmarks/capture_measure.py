@@ -85,7 +85,7 @@ def measure(edit: Path, photos: int = 0, strip: Optional[Path] = None, strip_pho
             indices: Optional[Sequence[int]] = None, sketch: bool = True) -> dict:
     """The figures at the first `photos` held-out photos (0: all) or at those `indices`, and at the sketch views
     unless not `sketch`; `strip`: where the pictures of the first `strip_photos` measured go."""
-    from sked_ns.demo.composite_target import Primitive
+    from sked_ns.demo.composite_target import target_primitive
     from sked_ns.evaluation.metrics import psnr_inside, psnr_outside, ssim_outside
     from sked_ns.evaluation.render import load_pipeline, render_camera
 
@@ -95,8 +95,8 @@ def measure(edit: Path, photos: int = 0, strip: Optional[Path] = None, strip_pho
     guidance = model.config.guidance
     if getattr(guidance, "primitive", "none") == "none":
         raise SystemExit(f"error: {edit}: not an edit towards the composite target (--pipeline.model.guidance.primitive)")
-    primitive = Primitive.in_edit_box(guidance.primitive, guidance.primitive_colour, guidance.primitive_centre,
-                                      guidance.primitive_size, model.edit_box)
+    primitive = target_primitive(model, guidance.primitive, guidance.primitive_colour, guidance.primitive_centre,
+                                 guidance.primitive_size)
     rows, tiles = [], []
     if indices is None:
         indices = range(len(dataset) if photos <= 0 else min(photos, len(dataset)))

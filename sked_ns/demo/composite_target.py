@@ -2,7 +2,7 @@
 
 For measuring an edit of a scene that has no analytic ground truth (a capture): the frozen base is rendered at
 the view (colour and expected depth, through the model's `render_base`), a primitive (a cone, a ball or a box of
-one colour, placed and sized inside the edit box) is ray-cast at every pixel, and shown only where it is nearer
+one colour, placed and sized inside the edit box, or the sketches' visual hull itself) is ray-cast at every pixel, and shown only where it is nearer
 than the base's expected depth, so content in front of it hides it as it would hide a real object. Not a way to
 edit a scene: the reference guidance pulls an edit towards it so that what the edit keeps and what it changes can
 be measured without Stable Diffusion's weights. The base's own blur and floaters are in the target as they are
@@ -13,7 +13,7 @@ from __future__ import annotations
 
 from contextlib import nullcontext
 from dataclasses import dataclass
-from typing import Dict, Sequence
+from typing import Callable, Dict, Sequence
 
 import numpy as np
 import torch
@@ -23,10 +23,14 @@ from sked_ns.demo.scenes.capture import cone
 from sked_ns.demo.scenes.objects import box, sphere
 from sked_ns.demo.scenes.sphere import shade
 
-PRIMITIVES = ("cone", "ball", "box")
+PRIMITIVES = ("cone", "ball", "box", "hull")
 OPAQUE = 0.5
 """A base pixel at least this opaque has a surface at its expected depth; a fainter one shows what lies behind."""
 CAST_STEPS = 96
+HULL_STEPS, HULL_BISECTIONS = 192, 10
+"""SketchHull's march: samples along each ray's span of the edit box, then halvings of the step that entered it."""
+HULL_CHUNK = 4096
+"""Rays per march (bounds its transient memory: rays x steps points)."""
 
 
 @dataclass(frozen=True)
@@ -65,6 +69,56 @@ class Primitive:
         hit = self.sdf(points).abs() < 1e-3 * scale
         colour = lambda p: p.new_tensor(self.colour).expand(*p.shape[:-1], 3)  # noqa: E731
         return {"hit": hit, "distance": travelled, "rgb": shade(points, self.sdf, colour)}
+
+
+@dataclass(frozen=True)
+class SketchHull:
+    """The sketches' visual hull in the edit box as one solid of one colour, unlit (it has no smooth surface to light):
+    the largest solid every sketch agrees on, so it fills each sketch as far as the other views let anything fill it,
+    and an edit that made it reaches the most IoS any edit can. `inside`: the model's hull test on points (N, 3)."""
+
+    colour: Sequence[float]
+    low: np.ndarray
+    high: np.ndarray
+    inside: Callable[[Tensor], Tensor]
+    kind: str = "hull"
+
+    def cast(self, origins: Tensor, directions: Tensor) -> Dict[str, Tensor]:
+        """March rays (..., 3) through the edit box: "hit", "distance" to the hull's first point and "rgb"."""
+        flat_o, flat_d = origins.reshape(-1, 3), directions.reshape(-1, 3)
+        parts = [self._march(o, d) for o, d in zip(flat_o.split(HULL_CHUNK), flat_d.split(HULL_CHUNK))]
+        hit, distance = (torch.cat([part[i] for part in parts]).reshape(origins.shape[:-1]) for i in range(2))
+        rgb = origins.new_tensor(self.colour).expand(*origins.shape[:-1], 3)
+        return {"hit": hit, "distance": distance, "rgb": rgb}
+
+    def _march(self, origins: Tensor, directions: Tensor):
+        low, high = origins.new_tensor(self.low), origins.new_tensor(self.high)
+        away = torch.where(directions.abs() < 1e-12, torch.full_like(directions, 1e-12), directions)
+        ends = torch.stack([(low - origins) / away, (high - origins) / away])
+        near, far = ends.amin(dim=0).amax(dim=-1).clamp_min(0.0), ends.amax(dim=0).amin(dim=-1)
+        t = near[:, None] + (far - near).clamp_min(0.0)[:, None] * torch.linspace(0, 1, HULL_STEPS).to(origins)
+        inside = self._inside(origins[:, None] + t[..., None] * directions[:, None]) & (far > near)[:, None]
+        hit = inside.any(dim=-1)
+        first = inside.to(torch.uint8).argmax(dim=-1, keepdim=True)  # the first sample inside
+        outer, inner = t.gather(-1, (first - 1).clamp_min(0))[:, 0], t.gather(-1, first)[:, 0]
+        for _ in range(HULL_BISECTIONS):  # the hull's face between the last sample outside and the first inside
+            middle = (outer + inner) / 2
+            entered = self._inside(origins + middle[:, None] * directions)
+            outer, inner = torch.where(entered, outer, middle), torch.where(entered, middle, inner)
+        return hit, torch.where(hit, inner, torch.full_like(inner, torch.inf))
+
+    def _inside(self, points: Tensor) -> Tensor:
+        return self.inside(points.reshape(-1, 3)).reshape(points.shape[:-1]).to(points.device)
+
+
+def target_primitive(model, kind: str, colour: Sequence[float], centre: Sequence[float], size: float):
+    """The reference guidance's primitive in `model`'s edit box: an analytic one, or the sketches' hull."""
+    if kind == "hull":
+        def inside(points: Tensor) -> Tensor:
+            return model.in_sketch_hull(points.to(model.device, torch.float32)).cpu()
+
+        return SketchHull(tuple(colour), np.asarray(model.edit_box.min), np.asarray(model.edit_box.max), inside)
+    return Primitive.in_edit_box(kind, colour, centre, size, model.edit_box)
 
 
 def composite(base: Dict[str, Tensor], primitive: Dict[str, Tensor]) -> Dict[str, Tensor]:
@@ -113,7 +167,7 @@ def render_base_with_depth(model, camera) -> Dict[str, Tensor]:
             "origins": rays.origins, "directions": rays.directions}
 
 
-def composite_target(model, primitive: Primitive, camera) -> Dict[str, Tensor]:
+def composite_target(model, primitive, camera) -> Dict[str, Tensor]:
     """The frozen base at a nerfstudio camera with `primitive` set in, depth-tested: "rgb", "changed", and the
     base's "base" (its render) and "silhouette" (where the primitive is, hidden or not)."""
     base = render_base_with_depth(model, camera)

@@ -37,15 +37,18 @@ class ReferenceGuidanceConfig(GuidanceConfig):
     """Which known edit renders the references: the demo sphere's (demo_scene.SCENES: hat, handle,
     antenna) or a held-out benchmark scene's (objects.SCENES: vase, crate; capture.SCENES: bust). Not read
     when `primitive` names one."""
-    primitive: Literal["none", "cone", "ball", "box"] = "none"
+    primitive: Literal["none", "cone", "ball", "box", "hull"] = "none"
     """A target any base can take, for measuring: the frozen base's own render with this primitive set into the
-    edit box, shown where it is nearer than the base's expected depth. none: `target`'s known scene."""
+    edit box, shown where it is nearer than the base's expected depth; hull: the sketches' visual hull itself, one
+    colour, unlit (it fills each sketch as far as the other views allow). none: `target`'s known scene."""
     primitive_colour: Tuple[float, float, float] = (0.85, 0.15, 0.15)
-    """The primitive's colour (RGB in [0, 1]), shaded by the demo scenes' fixed light."""
+    """The primitive's colour (RGB in [0, 1]), shaded by the demo scenes' fixed light (the hull: unlit)."""
     primitive_size: float = 0.8
-    """The primitive's extent as a share of the edit box's along each axis (a ball's diameter: of its smallest)."""
+    """The primitive's extent as a share of the edit box's along each axis (a ball's diameter: of its smallest; not
+    read for the hull)."""
     primitive_centre: Tuple[float, float, float] = (0.5, 0.5, 0.5)
-    """Where the primitive's centre sits in the edit box, as shares of its extent along the model frame's axes."""
+    """Where the primitive's centre sits in the edit box, as shares of its extent along the model frame's axes (not
+    read for the hull)."""
     weight: float = 30.0
     """Multiplier of the image MSE. At 1 the silhouette loss outweighs it and fills the sketch
     with a grey haze; at 30 the hat takes the target's shape and colour."""
@@ -76,11 +79,11 @@ class ReferenceGuidance(Guidance):
         if config.primitive == "none":
             self.scene = reference_scene(config.target)
             return
-        from sked_ns.demo.composite_target import Primitive
+        from sked_ns.demo.composite_target import target_primitive
 
         self.model = context["model"]  # the frozen base it renders, and the edit box the primitive stands in
-        self.primitive = Primitive.in_edit_box(config.primitive, config.primitive_colour, config.primitive_centre,
-                                               config.primitive_size, self.model.edit_box)
+        self.primitive = target_primitive(self.model, config.primitive, config.primitive_colour,
+                                          config.primitive_centre, config.primitive_size)
 
     def target_image(self, view: RenderedView) -> tuple[Tensor, Tensor, Tensor]:
         """Sampled as the view was (samples_per_side^2 samples a pixel, averaged; a point-sampled target beside an

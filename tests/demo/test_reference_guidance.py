@@ -182,3 +182,54 @@ def test_a_primitive_no_edit_box_holds_is_refused_in_one_line(setting, flag):
     with pytest.raises(SkedUserError, match=rf"^--pipeline\.model\.guidance\.{flag} [^\n]+$"):
         ReferenceGuidanceConfig(primitive="ball", target="no such scene", **setting).check()
     ReferenceGuidanceConfig(primitive="ball", target="no such scene").check()  # the known scenes are not asked
+
+
+# ---- the sketches' hull as the target's solid ----------------------------------------------------------------------
+class _HullBase(_AnalyticBase):
+    """`_AnalyticBase` whose sketches' hull is a ball in the edit box (`in_sketch_hull`, as SkedEdit's, on points)."""
+
+    def __init__(self, edit_box, centre, radius):
+        super().__init__(edit_box)
+        self.centre, self.radius = torch.tensor(centre), radius
+
+    def in_sketch_hull(self, positions):
+        return (positions - self.centre.to(positions)).norm(dim=-1) <= self.radius
+
+
+def test_the_hull_target_is_the_model_s_hull_test_ray_cast():
+    """Hit where the hull test holds along the ray, at its first point to the marcher's halvings; against the
+    analytic ball the test is."""
+    from sked_ns.demo.composite_target import SketchHull, pinhole, render_base_with_depth, target_primitive
+
+    edit_box, centre, radius = _box((0.1, -0.5, 0.3), (0.5, -0.1, 0.7)), (0.3, -0.3, 0.5), 0.15
+    model = _HullBase(edit_box, centre, radius)
+    hull = target_primitive(model, "hull", (0.2, 0.3, 0.9), (0.5, 0.5, 0.5), 0.8)
+    assert isinstance(hull, SketchHull)
+    rays = render_base_with_depth(model, pinhole(VASE_VIEW, 1.1 * 64, 64, 64))
+    origins, directions = rays["origins"].double(), rays["directions"].double()
+    cast = hull.cast(origins, directions)
+    # The analytic ball: |o + t d - c|^2 = r^2 (unit directions).
+    offset = origins - torch.tensor(centre, dtype=torch.float64)
+    b = (offset * directions).sum(dim=-1)
+    disc = b * b - ((offset * offset).sum(dim=-1) - radius ** 2)
+    sure = disc > 1e-3 * radius ** 2  # rays grazing the ball may miss it between two samples
+    assert sure.sum() > 50 and bool(cast["hit"][sure].all()) and not bool(cast["hit"][disc < 0].any())
+    exact = -b - disc.clamp_min(0).sqrt()
+    step = float(np.linalg.norm(edit_box.max - edit_box.min))
+    assert torch.allclose(cast["distance"][sure], exact[sure], atol=1e-3 * step)
+    assert torch.equal(cast["rgb"][cast["hit"]], torch.tensor([0.2, 0.3, 0.9], dtype=torch.float64).expand(
+        int(cast["hit"].sum()), 3))
+
+
+def test_the_reference_guidance_takes_the_hull_as_its_primitive():
+    from sked_ns.demo.composite_target import SketchHull
+
+    model = _HullBase(_box((0.1, -0.5, 0.3), (0.5, -0.1, 0.7)), (0.3, -0.3, 0.5), 0.15)
+    guidance = ReferenceGuidanceConfig(primitive="hull").setup()
+    guidance.config.check()
+    guidance.prepare(None, "cpu", {"dataparser_transform": _Identity(), "model": model})
+    assert isinstance(guidance.primitive, SketchHull)
+    view = RenderedView(image=torch.zeros(1, 3, SIZE, SIZE), camera_to_world=VASE_VIEW, focal=1.1 * SIZE,
+                        direction="front")
+    _, _, changed = guidance.target_image(view)
+    assert 5 < int(changed.sum()) < SIZE * SIZE
