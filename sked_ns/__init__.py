@@ -16,4 +16,4 @@ install_excepthook()  # a user error prints its message alone (SKED_TRACEBACK=1 
 allow_numpy_in_checkpoints()  # ns-viewer / ns-render load the checkpoint before any SKED code runs
 
 __all__ = ["SkedFileNotFoundError", "SkedUserError"]
-__version__ = "0.11.0"
+__version__ = "0.12.0"
