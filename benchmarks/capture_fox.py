@@ -15,8 +15,9 @@ pinhole silhouettes of the ball on the photo's camera without its lens, as the v
 box holds the ball, and where the point the cameras look at (the fox) lands in nerfstudio's frame.
 
 `edit` runs `ns-train sked` of BASE towards the composite target (a cone in the edit box,
-`pipeline.model.guidance:reference --pipeline.model.guidance.primitive cone`) at a CPU's protocol (RESOLUTION px
-guidance and silhouette renders, SAMPLES_PER_RAY_SCALE of the base's samples), in this process as `ns-train` runs
+`pipeline.model.guidance:reference --pipeline.model.guidance.primitive cone`; --primitive hull: the sketches' hull) at
+a CPU's protocol (RESOLUTION px guidance renders, SILHOUETTE_RESOLUTION px sketch views, SAMPLES_PER_RAY_SCALE of the
+base's samples), in this process as `ns-train` runs
 it, timing each step and the process's peak resident memory while the steps run; with --output it then measures
 the edit (`capture_measure.py`: held-out photos and the sketch views; --strip: its picture strip).
 """
@@ -44,7 +45,10 @@ from sked_ns.sketches.sketch_set import SketchSet, SketchView, load_sketch_set, 
 HAT = ((0.68, -0.855, 1.45), 0.35)
 """(centre, radius) of the hat region in the fox's data frame: over the forehead, between the ears."""
 RESOLUTION = 24
-"""Guidance and silhouette render side, px: edit_quality.py's CPU protocols."""
+"""Guidance render side, px: edit_quality.py's CPU protocols (the random views frame the edit box)."""
+SILHOUETTE_RESOLUTION = 64
+"""Sketch views' render side, px: a whole photo's frame, where the hat region's sketches cover 3-5 pixels at 24 px
+(the edit warns so) and 30-40 at 64, the side capture_measure scores IoS at; L_sil renders only the masks' pixels."""
 SAMPLES_PER_RAY_SCALE = 0.25
 """A NeRF base's samples per ray in the edit's renders, as edit_quality.py's CPU protocols."""
 VIEWS = ("0001", "0025")
@@ -113,7 +117,7 @@ def edit_arguments(data: Path, sketches: Path, base: Path, out: Path, iterations
             "--experiment-name", "fox", "--max-num-iterations", str(iterations), "--steps-per-save", str(iterations),
             "--vis", "tensorboard", "--machine.device-type", "cpu",
             "--pipeline.model.guidance-resolution", str(RESOLUTION),
-            "--pipeline.model.silhouette-resolution", str(RESOLUTION),
+            "--pipeline.model.silhouette-resolution", str(SILHOUETTE_RESOLUTION),
             "--pipeline.model.samples-per-ray-scale", str(SAMPLES_PER_RAY_SCALE),
             "--pipeline.model.edit-box-warmup", str(max(1, iterations // 10)),
             # Random views where the photos were, relative to the first sketch view: the capture is an arc.
@@ -191,7 +195,8 @@ def main(argv=None) -> None:
         timing = run_edit(command)
         run = max((arguments.out / "fox" / "sked").iterdir())
         result = {"command": "ns-train " + " ".join(command), "run": str(run), "iterations": arguments.iterations,
-                  "resolution": RESOLUTION, "samples_per_ray_scale": SAMPLES_PER_RAY_SCALE, "timing": timing}
+                  "resolution": RESOLUTION, "silhouette_resolution": SILHOUETTE_RESOLUTION,
+                  "samples_per_ray_scale": SAMPLES_PER_RAY_SCALE, "timing": timing}
         if arguments.output is not None:
             from capture_measure import measure
 
