@@ -38,6 +38,7 @@ import harness
 import numpy as np
 import torch
 
+from sked_ns.demo.composite_target import PRIMITIVES
 from sked_ns.demo.scenes.objects import sphere
 from sked_ns.demo.scenes.sphere import trace
 from sked_ns.sketches.sketch_set import SketchSet, SketchView, load_sketch_set, save_sketch_set
@@ -182,8 +183,8 @@ def main(argv=None) -> None:
     for name in ("data", "sketches", "base", "out"):
         edit.add_argument(name, type=Path)
     edit.add_argument("--iterations", type=int, default=100)
-    edit.add_argument("--primitive", choices=("cone", "ball", "box", "hull"), default="cone",
-                      help="the composite target's part (a ball fills the hat region's sketches; a cone part of them)")
+    edit.add_argument("--primitive", choices=PRIMITIVES, default="cone",
+                      help="the composite target's part (hull: the sketches' hull, which fills them; a cone, ball or box sized from the edit box fills part of them)")
     edit.add_argument("--output", type=Path, help="measure the edit and write the results here (JSON)")
     edit.add_argument("--strip", type=Path, help="a PNG of photo | base | edit | difference at three held-out photos")
     arguments = parser.parse_args(argv)
