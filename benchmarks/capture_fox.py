@@ -184,7 +184,8 @@ def main(argv=None) -> None:
         edit.add_argument(name, type=Path)
     edit.add_argument("--iterations", type=int, default=100)
     edit.add_argument("--primitive", choices=PRIMITIVES, default="cone",
-                      help="the composite target's part (hull: the sketches' hull, which fills them; a cone, ball or box sized from the edit box fills part of them)")
+                      help="the composite target's part (hull: the sketches' hull, which fills them; a cone, ball or "
+                           "box sized from the edit box fills part of them)")
     edit.add_argument("--output", type=Path, help="measure the edit and write the results here (JSON)")
     edit.add_argument("--strip", type=Path, help="a PNG of photo | base | edit | difference at three held-out photos")
     arguments = parser.parse_args(argv)
