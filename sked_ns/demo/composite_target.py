@@ -81,7 +81,6 @@ class SketchHull:
     low: np.ndarray
     high: np.ndarray
     inside: Callable[[Tensor], Tensor]
-    kind: str = "hull"
 
     def cast(self, origins: Tensor, directions: Tensor) -> Dict[str, Tensor]:
         """March rays (..., 3) through the edit box: "hit", "distance" to the hull's first point and "rgb"."""
