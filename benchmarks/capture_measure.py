@@ -15,8 +15,9 @@ docs/captures.md). At every photo nerfstudio held out for evaluation (its own sp
   changed pixels (intersection over union), and the edit's PSNR against the composite inside the silhouette.
 
 At the sketch views (SKETCH_RESOLUTION px, as sked-eval): IoS of the edit and its base (any opacity, so the wall
-behind a sketch fills it before any edit), region IoS (opacity of content near the sketches only), and the
-primitive's own IoS (its silhouette's share of the sketch: the most region IoS an edit that made the target can reach).
+behind a sketch fills it before any edit), region IoS (opacity of content near the sketches only), the primitive's own
+IoS (its silhouette's share of the sketch) and the share the composite shows it in (depth-tested: the most region IoS
+an edit that made the target can reach).
 With --strip, a PNG of photo | base | edit | |edit - base| x DIFFERENCE_GAIN at the first held-out photos.
 """
 
@@ -39,8 +40,9 @@ DIFFERENCE_GAIN = 4
 
 
 def sketch_views(model, primitive) -> dict:
-    """IoS and region IoS of the edit and its frozen base at each sketch view, and the IoS of the `primitive`'s
-    silhouette ("ios_target": what an edit that made exactly the target's part would fill of the sketch)."""
+    """IoS and region IoS of the edit and its frozen base at each sketch view, the IoS of the `primitive`'s silhouette
+    ("ios_target") and of the part where the composite shows it ("ios_target_shown", depth-tested against the base:
+    what an edit that made exactly the target would fill of the sketch)."""
     from sked_ns.evaluation.metrics import intersection_over_sketch
     from sked_ns.evaluation.render import render_at, render_base_at, resized_mask
     from sked_ns.sketches.sketch_set import sketch_view_at
@@ -51,9 +53,10 @@ def sketch_views(model, primitive) -> dict:
         mask = resized_mask(view, SKETCH_RESOLUTION)
         row = {"view": view.name, "ios": intersection_over_sketch(edited["accumulation"], mask),
                "ios_base": intersection_over_sketch(base["accumulation"], mask)}
-        rays = sketch_view_at(view, SKETCH_RESOLUTION)[0].generate_rays(camera_indices=0, keep_shape=True)
-        hit = primitive.cast(rays.origins.double(), rays.directions.double())["hit"]
-        row["ios_target"] = intersection_over_sketch(hit.float(), mask)
+        target = composite_target(model, primitive, sketch_view_at(view, SKETCH_RESOLUTION)[0])
+        row["ios_target"] = intersection_over_sketch(target["silhouette"].float(), mask)
+        # Where the base's own content stands in front of the part, the target shows the base: no edit fills there.
+        row["ios_target_shown"] = intersection_over_sketch(target["changed"].float(), mask)
         if "preservation_weight" in edited:
             row["ios_region"] = intersection_over_sketch(1.0 - edited["preservation_weight"], mask)
             row["ios_region_base"] = intersection_over_sketch(1.0 - base["preservation_weight"], mask)
