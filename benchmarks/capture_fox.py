@@ -3,6 +3,7 @@
     python benchmarks/capture_fox.py sketches DATA OUT [--views 0001 0025]   # a hat region on the fox's head
     python benchmarks/capture_fox.py check DATA SKETCHES                     # placement and edit box, both frames
     python benchmarks/capture_fox.py edit DATA SKETCHES BASE OUT [--iterations 100] [--output results.json]
+    python benchmarks/capture_fox.py measure results.json [--strip strip.png]   # that edit measured again, in place
 
 DATA is the dataset `benchmarks/capture_prep.py` wrote. A sketch view stands where a photo was taken (its
 camera, as a user snaps the viewer to a training camera before sketching), and its mask is the silhouette of a
@@ -52,6 +53,8 @@ SILHOUETTE_RESOLUTION = 64
 (the edit warns so) and 30-40 at 64, the side capture_measure scores IoS at; L_sil renders only the masks' pixels."""
 SAMPLES_PER_RAY_SCALE = 0.25
 """A NeRF base's samples per ray in the edit's renders, as edit_quality.py's CPU protocols."""
+RECORDED_RUN = ("command", "run", "iterations", "resolution", "silhouette_resolution", "samples_per_ray_scale", "timing")
+"""What `edit` records of the run beside its measurement (`measure` keeps it)."""
 VIEWS = ("0001", "0025")
 """Two photos about 55 degrees apart along the arc: the fox's left side and its front."""
 
@@ -188,6 +191,9 @@ def main(argv=None) -> None:
                            "box sized from the edit box fills part of them)")
     edit.add_argument("--output", type=Path, help="measure the edit and write the results here (JSON)")
     edit.add_argument("--strip", type=Path, help="a PNG of photo | base | edit | difference at three held-out photos")
+    again = commands.add_parser("measure", help="measure again the edit a results file of `edit` records, in place")
+    again.add_argument("results", type=Path)
+    again.add_argument("--strip", type=Path)
     arguments = parser.parse_args(argv)
     if arguments.command == "edit":
         if arguments.output is not None:
@@ -205,6 +211,15 @@ def main(argv=None) -> None:
             with torch.no_grad():
                 result.update(measure(run, strip=arguments.strip))
         harness.publish(result, arguments.output)
+    elif arguments.command == "measure":
+        harness.claim("capture_fox.py", arguments.results)
+        from capture_measure import measure
+
+        recorded = json.loads(arguments.results.read_text())
+        result = {key: recorded[key] for key in RECORDED_RUN if key in recorded}
+        with torch.no_grad():
+            result.update(measure(Path(recorded["run"]), strip=arguments.strip))
+        harness.publish(result, arguments.results)
     elif arguments.command == "sketches":
         save_sketch_set(hat_sketches(arguments.data, arguments.views), arguments.out)
         print(f"sketches of the hat region from {', '.join(arguments.views)} in {arguments.out}")
