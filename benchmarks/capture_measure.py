@@ -16,8 +16,8 @@ docs/captures.md). At every photo nerfstudio held out for evaluation (its own sp
 
 At the sketch views (SKETCH_RESOLUTION px, as sked-eval): IoS of the edit and its base (any opacity, so the wall
 behind a sketch fills it before any edit), region IoS (opacity of content near the sketches only), the primitive's own
-IoS (its silhouette's share of the sketch) and the share the composite shows it in (depth-tested: the most region IoS
-an edit that made the target can reach).
+IoS (its silhouette's share of the sketch), the share the composite shows it in (depth-tested) and, of those pixels,
+the share the edit changed by over CHANGED (`fill_shown`).
 With --strip, a PNG of photo | base | edit | |edit - base| x DIFFERENCE_GAIN at the first held-out photos.
 """
 
@@ -56,12 +56,18 @@ def sketch_views(model, primitive) -> dict:
         target = composite_target(model, primitive, sketch_view_at(view, SKETCH_RESOLUTION)[0])
         row["ios_target"] = intersection_over_sketch(target["silhouette"].float(), mask)
         # Where the base's own content stands in front of the part, the target shows the base: no edit fills there.
-        row["ios_target_shown"] = intersection_over_sketch(target["changed"].float(), mask)
+        shown = target["changed"].cpu() & mask.bool()
+        row["ios_target_shown"] = intersection_over_sketch(shown.float(), mask)
+        # Of the sketch pixels where the target shows the part, those the edit changed (edit_quality's fill; the
+        # region IoS also weighs opacity by 1 - w, which the preservation falloff keeps below 1 at the hull's rim).
+        moved = (edited["rgb"] - base["rgb"]).abs().amax(dim=-1) > CHANGED
+        row["fill_shown"] = float((moved & shown).sum() / shown.sum()) if shown.any() else None
         if "preservation_weight" in edited:
             row["ios_region"] = intersection_over_sketch(1.0 - edited["preservation_weight"], mask)
             row["ios_region_base"] = intersection_over_sketch(1.0 - base["preservation_weight"], mask)
         rows.append(row)
-    return {"views": rows, "mean": {key: sum(row[key] for row in rows) / len(rows) for key in rows[0] if key != "view"}}
+    return {"views": rows, "mean": {key: sum(row[key] for row in rows) / len(rows) for key in rows[0]
+                                    if all(isinstance(row[key], float) for row in rows)}}
 
 
 def composite_target(model, primitive, camera) -> dict:

@@ -176,6 +176,7 @@ def test_the_capture_measurement_reads_the_edit_at_its_held_out_photos(capture_d
     assert len(sketch_views) == 2 and all(0 <= view["ios_region"] <= 1 for view in sketch_views)
     assert all(0 < view["ios_target"] <= 1 for view in sketch_views)  # the primitive sits in the sketches' box
     assert all(0 <= view["ios_target_shown"] <= view["ios_target"] for view in sketch_views)  # the base hides some
+    assert all(view["fill_shown"] is None or 0 <= view["fill_shown"] <= 1 for view in sketch_views)
     meta = json.loads((capture_data["data"] / "transforms.json").read_text())
     assert cv2.imread(str(strip)).shape == (meta["h"], 4 * meta["w"], 3)  # photo | base | edit | difference
     assert row["photo"].startswith("frame_") and row["composite_changed_pixels"] > 0
