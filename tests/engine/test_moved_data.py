@@ -144,7 +144,7 @@ def _viewer_stopped_by_ctrl_c(config: Path) -> subprocess.CompletedProcess:
             break
     process.send_signal(signal.SIGINT)
     try:
-        rest, errors = process.communicate(timeout=300)  # under a loaded suite it took over 120 s
+        rest, errors = process.communicate(timeout=120)
     except subprocess.TimeoutExpired:
         process.kill()
         rest, errors = process.communicate()
