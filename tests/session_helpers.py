@@ -2,10 +2,19 @@
 
 from __future__ import annotations
 
+import signal
 import socket
 import threading
 import time
 from pathlib import Path
+
+
+def terminal_sigint() -> None:
+    """A child's SIGINT as a terminal's process has it (`Popen(preexec_fn=...)`): unblocked and at its default, whatever
+    the test worker inherited or set (a blocked or ignored SIGINT is inherited through exec, and Ctrl-C would never
+    arrive)."""
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
 
 
 def free_port() -> int:

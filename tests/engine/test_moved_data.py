@@ -18,6 +18,7 @@ import pytest
 import torch
 import tyro
 import yaml
+from session_helpers import terminal_sigint
 
 from sked_ns.engine.edit_run import edit_config, resume_config, run_edit
 from sked_ns.errors import SkedFileNotFoundError
@@ -136,7 +137,7 @@ def _viewer_stopped_by_ctrl_c(config: Path) -> subprocess.CompletedProcess:
     """`ns-viewer --load-config CONFIG` until it serves, then Ctrl-C (SIGINT, as a terminal sends it)."""
     command = [str(NS_VIEWER), "--load-config", str(config), "--viewer.websocket-port", str(_free_port())]
     process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                               env={**os.environ, "OMP_NUM_THREADS": "1"})
+                               env={**os.environ, "OMP_NUM_THREADS": "1"}, preexec_fn=terminal_sigint)
     shown = []
     for line in process.stdout:  # serving once nerfstudio's viewer has set up its writer
         shown.append(line)

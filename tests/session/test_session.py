@@ -142,13 +142,14 @@ def _ns_train() -> str:
 def test_ns_train_without_sketches_opens_the_session_and_ctrl_c_leaves_no_run(scene, tmp_path):
     """The command line as users type it: the viewer serves, training waits and writes no config.yml; ctrl+c ends
     the session and removes the run folder it took."""
-    from session_helpers import free_port
+    from session_helpers import free_port, terminal_sigint
 
     port = free_port()
     process = subprocess.Popen(
         [_ns_train(), "sked", "--load-dir", str(scene["base"]), "--machine.device-type", "cpu", "--output-dir",
          str(tmp_path / "out"), "--viewer.websocket-port", str(port), "nerfstudio-data", "--data", str(scene["data"])],
-        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env={**os.environ, "COLUMNS": "200"})
+        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env={**os.environ, "COLUMNS": "200"},
+        preexec_fn=terminal_sigint)
     lines = []
     try:
         deadline = time.monotonic() + 300
