@@ -52,6 +52,7 @@ PROTOCOLS = {"cpu-100": {"iterations": 100, "resolution": 24, "samples_per_ray_s
              "cpu-100-48": {"iterations": 100, "resolution": 48, "samples_per_ray_scale": 0.25},
              "long-48": {"iterations": 500, "resolution": 48, "samples_per_ray_scale": 0.25}}
 DEFAULT_PROTOCOLS = ("cpu-100", "long")
+DEFAULT_SCENES = ("hat", "vase", "crate")
 BASE_ITERATIONS = 400
 BASE_RAYS = 256
 BASE_LOG2_HASHMAP = 15  # nerfacto's default 19 is sized for real scenes; these are 128 px objects
@@ -417,7 +418,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--quick", action="store_true", help="hat only, 4 edit iterations, a 30-iteration base")
     parser.add_argument("--scenes", default=None,
-                        help="comma-separated (default hat,vase,crate): " + ", ".join(TUNED + HELD_OUT + UNBOUNDED))
+                        help=f"comma-separated (default {','.join(DEFAULT_SCENES)}): " + ", ".join(TUNED + HELD_OUT + UNBOUNDED))
     parser.add_argument("--protocols", default=None,
                         help=f"comma-separated, of {', '.join(PROTOCOLS)} (default {','.join(DEFAULT_PROTOCOLS)}; "
                              "with --step-time: the first one's render size)")
@@ -457,7 +458,7 @@ def main() -> None:
     harness.claim("edit_quality.py", args.output, args.work)
     from sked_ns.demo.scenes.catalogue import write_benchmark
 
-    scenes = ["hat"] if args.quick else (args.scenes or "hat,vase,crate").split(",")
+    scenes = ["hat"] if args.quick else (args.scenes.split(",") if args.scenes else list(DEFAULT_SCENES))
     protocols = {"quick": {"iterations": 4, "resolution": 16, "samples_per_ray_scale": 0.25}} if args.quick else {
         name: PROTOCOLS[name] for name in (args.protocols or ",".join(DEFAULT_PROTOCOLS)).split(",")}
     variants = ["default"] if args.quick else [_variant(tag) for tag in args.variants.split(",")]

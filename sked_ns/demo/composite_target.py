@@ -2,11 +2,11 @@
 
 For measuring an edit of a scene that has no analytic ground truth (a capture): the frozen base is rendered at
 the view (colour and expected depth, through the model's `render_base`), a primitive (a cone, a ball or a box of
-one colour, placed and sized inside the edit box, or the sketches' visual hull itself) is ray-cast at every pixel, and shown only where it is nearer
-than the base's expected depth, so content in front of it hides it as it would hide a real object. Not a way to
-edit a scene: the reference guidance pulls an edit towards it so that what the edit keeps and what it changes can
-be measured without Stable Diffusion's weights. The base's own blur and floaters are in the target as they are
-in its renders.
+one colour, placed and sized inside the edit box, or the sketches' visual hull itself) is ray-cast at every pixel,
+and shown only where it is nearer than the base's expected depth, so content in front of it hides it as it would
+hide a real object. Not a way to edit a scene: the reference guidance pulls an edit towards it so that what the edit
+keeps and what it changes can be measured without Stable Diffusion's weights. The base's own blur and floaters are
+in the target as they are in its renders.
 """
 
 from __future__ import annotations
@@ -74,8 +74,8 @@ class Primitive:
 @dataclass(frozen=True)
 class SketchHull:
     """The sketches' visual hull in the edit box as one solid of one colour, unlit (it has no smooth surface to light):
-    the largest solid every sketch agrees on, so it fills each sketch as far as the other views let anything fill it,
-    and an edit that made it reaches the most IoS any edit can. `inside`: the model's hull test on points (N, 3)."""
+    the largest solid every sketch agrees on, so it fills each sketch as far as the other views let anything fill it.
+    `inside`: the model's hull test on points (N, 3)."""
 
     colour: Sequence[float]
     low: np.ndarray
