@@ -263,6 +263,8 @@ def plan_coefficients(result: Dict) -> Dict[str, Dict[str, float]]:
         work, weights = entry_work(entry), entry["settings"]["base_weights_gb"] * GB
         rays = (work["rays"] + work["sketch_rays"]) * work["sample_scale"]
         step, held = entry["chunked"]["step_peak_gb"] * GB, entry["chunked"]["held_at_guidance_gb"] * GB
+        if entry["settings"].get("nerf_edit_field") in ("local", "local-residual"):  # its gradients: Adam's moments / 2
+            weights = entry["resident_gb"]["optimiser_state"] * GB / 2
         model = {"kept_per_ray": held / rays, "activation_per_ray": 0.0,
                  "activation_per_sample": max(0.0, step - held - weights) / work["chunk"]}
         model["resident_per_weight_byte"] = resident_per_weight_byte(entry, False)
@@ -390,10 +392,18 @@ def main() -> None:
                         help="what to measure: steps (each base kind and size), sd (Stable Diffusion's side)")
     parser.add_argument("--keep", action="store_true",
                         help="keep --output's other entries (steps of other bases or sizes, SD's side when not measured)")
+    parser.add_argument("--coefficients-only", action="store_true",
+                        help="derive --output's plan_coefficients again from the steps it recorded; measure nothing")
     parser.add_argument("--output", type=Path, default=harness.RESULTS / "memory.json")
     parser.add_argument("--workdir", type=Path, default=None)
     args = parser.parse_args()
     harness.claim("memory.py", args.output, args.workdir)
+    if args.coefficients_only:
+        result = json.loads(args.output.read_text())
+        result["plan_coefficients"] = plan_coefficients(result)
+        harness.write_results(args.output, result)
+        harness.report(table(result), args.output)
+        return
     import psutil
 
     args.host_memory_gb = psutil.virtual_memory().total / GB

@@ -15,7 +15,8 @@ A model of what benchmarks/memory.py measures (docs/benchmarks.md, Memory), part
 
 The step's peak is the larger of the NeRF side's own peak and what it holds when the guidance runs
 plus the guidance's step. The coefficients below are benchmarks/memory.py's measurements (fp32, CPU,
-torch hash grids) divided out; tests/engine/test_memory_plan.py checks the plan against its results file.
+torch hash grids) divided out, a local NeRF edit's step from its own run where measured;
+tests/engine/test_memory_plan.py checks the plan against their results files.
 The plan also says roughly how long a step will take there (engine/step_time.py), from the same work.
 """
 
@@ -24,7 +25,7 @@ from __future__ import annotations
 import json
 import math
 import struct
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Dict, List, Optional, Tuple
 
@@ -79,6 +80,13 @@ STEP_MODELS: Dict[str, StepModel] = {
     "splatfacto": StepModel(kept_per_ray=76.02, activation_per_ray=19.13, activation_per_sample=0.0, samples_per_ray=1,
                             kept_per_weight_byte=6.274, step_per_weight_byte=379.5, resident_per_weight_byte=5.498),
 }
+
+LOCAL_STEP_MODELS: Dict[str, StepModel] = {
+    # A local field's chunk re-creates its own small grid's and MLPs' activations in the backward pass, not a whole
+    # copy's (memory_nerfacto_local_field.json); unchunked (not measured) and instant-ngp as the whole copy's: above.
+    "nerfacto": replace(STEP_MODELS["nerfacto"], kept_per_ray=20506, activation_per_sample=5115),
+}
+"""Where a local NeRF edit's step differs from a whole copy's (the plan falls back to STEP_MODELS)."""
 
 SEED_BYTES = 59 * 4 * 3
 """A splat edit's new Gaussian: 59 floats (position, scale, rotation, opacity, 16 SH colours), with Adam's moments."""
@@ -161,11 +169,12 @@ def field_samples(representation: str, work: StepWork) -> Optional[float]:
     return (work.rays + work.sketch_rays) * STEP_MODELS[representation].samples_per_ray * work.sample_scale
 
 
-def nerf_side(representation: str, work: StepWork, base_bytes: float,
-              trained: Optional[float] = None) -> Tuple[float, float]:
+def nerf_side(representation: str, work: StepWork, base_bytes: float, trained: Optional[float] = None,
+              local: bool = False) -> Tuple[float, float]:
     """(the side's own step peak, what it holds when the guidance runs), in bytes; the gradients of the trained
-    weights (`trained`, `trained_bytes`; None: the base's, a whole copy) come in the backward pass."""
-    model = STEP_MODELS[representation]
+    weights (`trained`, `trained_bytes`; None: the base's, a whole copy) come in the backward pass. LOCAL: the edit
+    trains a local field (trained_weights.is_local)."""
+    model = LOCAL_STEP_MODELS.get(representation, STEP_MODELS[representation]) if local else STEP_MODELS[representation]
     trained = base_bytes if trained is None else trained
     if representation_named(representation).renders == "cameras":  # per pixel and per Gaussian: kept, and added
         held = work.rays * model.kept_per_ray + base_bytes * model.kept_per_weight_byte
@@ -253,7 +262,8 @@ def plan_edit(config) -> MemoryPlan:
     device = machine.device_type if machine.device_type != "cuda" else "cuda:0"
     weights = checkpoint_weight_bytes(base_weights(options))
     work = step_work(options, config.pipeline.datamanager, representation)
-    step, held = nerf_side(representation, work, weights, trained_bytes(representation, weights, options))
+    step, held = nerf_side(representation, work, weights, trained_bytes(representation, weights, options),
+                           is_local(representation, options))
     plan = MemoryPlan(device=device, resident=resident_bytes(representation, weights, options), nerf_step=step,
                       held_at_guidance=held)
     sd_size = sd_device_type = None

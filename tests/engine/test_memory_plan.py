@@ -226,11 +226,33 @@ def _resolved(scene, tmp_path, **model):
     return config
 
 
+def test_a_local_edits_step_is_planned_from_its_own_measurement():
+    """A local NeRF edit's step (benchmarks/memory.py --edit-field local) is planned within a quarter with its own
+    coefficients, which are that file's; the whole copy's would plan it well above what it holds."""
+    from sked_ns.models.nerf.nerfacto import SkedNerfactoModelConfig
+
+    result = json.loads((RESULTS.parent / "memory_nerfacto_local_field.json").read_text())
+    options = SkedNerfactoModelConfig(prompt="a hat", nerf_edit_field="local")
+    local = memory_plan.LOCAL_STEP_MODELS["nerfacto"]
+    for name in ("kept_per_ray", "activation_per_sample"):
+        assert getattr(local, name) == pytest.approx(result["plan_coefficients"]["nerfacto"][name], rel=0.01), name
+    for key, entry in result["steps"].items():
+        assert entry["settings"]["nerf_edit_field"] == "local", key
+        weights = entry["settings"]["base_weights_gb"] * GB
+        trained = memory_plan.trained_bytes("nerfacto", weights, options)
+        step, held = nerf_side("nerfacto", _work(entry), weights, trained, local=True)
+        _close(step / GB, entry["chunked"]["step_peak_gb"], f"{key} local step")
+        _close(held / GB, entry["chunked"]["held_at_guidance_gb"], f"{key} local held at the guidance")
+        whole_copy, _ = nerf_side("nerfacto", _work(entry), weights, trained)
+        assert whole_copy > (1 + WITHIN) * entry["chunked"]["step_peak_gb"] * GB, key
+
+
 def test_no_nan_in_the_plan_at_the_extremes():
     for representation in memory_plan.STEP_MODELS:
         for work in (StepWork(0.0, 0.0, 1.0, 0), StepWork(1e9, 1e9, 8.0, 1), StepWork(1.0, 0.0, 0.25, 10**9)):
-            step, held = nerf_side(representation, work, 0.0)
-            assert torch.isfinite(torch.tensor([step, held])).all() and step >= held >= 0
+            for local in (False, True):
+                step, held = nerf_side(representation, work, 0.0, local=local)
+                assert torch.isfinite(torch.tensor([step, held])).all() and step >= held >= 0
 
 
 def test_the_plans_coefficients_are_the_benchmarks():
