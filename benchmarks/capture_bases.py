@@ -1,7 +1,7 @@
 """Bases of a photographed capture on the CPU, scored as nerfstudio scores them (ns-eval on its own eval split).
 
     python benchmarks/capture_bases.py eval RUN/config.yml [--output results.json]
-    python benchmarks/capture_bases.py splat DATA NERFACTO_RUN OUTPUT [--steps 300 --gaussians 8000]
+    python benchmarks/capture_bases.py splat DATA NERFACTO_RUN OUTPUT [--steps 300 --gaussians 8000] [--output r.json]
 
 `eval` is nerfstudio's `ns-eval` (its ComputePSNR, at every photo of the dataset's eval split) with two things a
 CPU without a network needs: LPIPS (an AlexNet download) scores NaN, and a splatfacto run renders with SKED's
@@ -138,6 +138,7 @@ def main(argv=None) -> None:
     splat.add_argument("--gaussians", type=int, default=8000)
     splat.add_argument("--cloud-points", type=int, default=20000)
     splat.add_argument("--refine-every", type=int, default=40, help="densify every N steps (over --steps: never)")
+    splat.add_argument("--output", dest="results", type=Path, help="the fit's figures as a results file")
     arguments = parser.parse_args(argv)
     if arguments.command == "eval":
         if arguments.output is not None:
@@ -145,9 +146,12 @@ def main(argv=None) -> None:
         raw = (arguments.output or Path("ns-eval.json")).with_suffix(".ns-eval.json")
         harness.publish(evaluate(arguments.config, raw), arguments.output)
     else:
-        print(json.dumps(fit_splat(arguments.data, arguments.nerfacto, arguments.output, arguments.experiment,
-                                   arguments.steps, arguments.gaussians, arguments.cloud_points,
-                                   arguments.refine_every), indent=2, default=str))
+        if arguments.results is not None:
+            harness.claim("capture_bases.py", arguments.results)
+        fit = fit_splat(arguments.data, arguments.nerfacto, arguments.output, arguments.experiment, arguments.steps,
+                        arguments.gaussians, arguments.cloud_points, arguments.refine_every)
+        fit["command"] = "python benchmarks/capture_bases.py " + " ".join(map(str, argv or sys.argv[1:]))
+        harness.publish(fit, arguments.results)
 
 
 if __name__ == "__main__":
