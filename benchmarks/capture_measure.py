@@ -66,8 +66,14 @@ def sketch_views(model, primitive) -> dict:
             row["ios_region"] = intersection_over_sketch(1.0 - edited["preservation_weight"], mask)
             row["ios_region_base"] = intersection_over_sketch(1.0 - base["preservation_weight"], mask)
         rows.append(row)
-    return {"views": rows, "mean": {key: sum(row[key] for row in rows) / len(rows) for key in rows[0]
-                                    if all(isinstance(row[key], float) for row in rows)}}
+    return {"views": rows, "mean": view_means(rows)}
+
+
+def view_means(rows: Sequence[dict]) -> dict:
+    """Each figure's mean over the views that have it: a view where the target shows nothing of the part has no fill
+    to score (None), and leaving it out must not drop the figure of the views that do."""
+    scored = {key: [row[key] for row in rows if isinstance(row.get(key), float)] for key in rows[0] if key != "view"}
+    return {key: sum(values) / len(values) for key, values in scored.items() if values}
 
 
 def composite_target(model, primitive, camera) -> dict:

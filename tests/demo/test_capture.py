@@ -183,3 +183,12 @@ def test_the_capture_measurement_reads_the_edit_at_its_held_out_photos(capture_d
     assert row["kept_difference_db"] == pytest.approx(row["edit_psnr_photo"] - row["base_psnr_photo"])
     assert 5 < row["base_psnr_photo"] < 60 and 0 < row["edit_ssim_photo"] <= 1
     assert row["edit_psnr_base"] > 20  # two steps move little outside the primitive
+
+
+def test_a_sketch_view_where_the_target_shows_nothing_leaves_the_others_fill_in_the_mean():
+    sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "benchmarks"))
+    import capture_measure
+
+    rows = [{"view": "a", "ios": 1.0, "fill_shown": 0.5}, {"view": "b", "ios": 0.5, "fill_shown": None}]
+    assert capture_measure.view_means(rows) == {"ios": 0.75, "fill_shown": 0.5}
+    assert "fill_shown" not in capture_measure.view_means([{"view": "a", "ios": 1.0, "fill_shown": None}])
