@@ -69,10 +69,10 @@ def sketch_views(model, primitive) -> dict:
     return {"views": rows, "mean": view_means(rows)}
 
 
-def view_means(rows: Sequence[dict]) -> dict:
-    """Each figure's mean over the views that have it: a view where the target shows nothing of the part has no fill
-    to score (None), and leaving it out must not drop the figure of the views that do."""
-    scored = {key: [row[key] for row in rows if isinstance(row.get(key), float)] for key in rows[0] if key != "view"}
+def view_means(rows: Sequence[dict], label: str = "view") -> dict:
+    """Each figure's mean over the views (photos) that have it: one where neither the target nor the edit shows the
+    part has no fill or changed IoU to score (None), and leaving it out must not drop the others' figure."""
+    scored = {key: [row[key] for row in rows if isinstance(row.get(key), (int, float))] for key in rows[0] if key != label}
     return {key: sum(values) / len(values) for key, values in scored.items() if values}
 
 
@@ -147,8 +147,7 @@ def measure(edit: Path, photos: int = 0, strip: Optional[Path] = None, strip_pho
         })
     for row in rows:
         row["kept_difference_db"] = row["edit_psnr_photo"] - row["base_psnr_photo"]
-    mean = {key: sum(row[key] for row in rows) / len(rows) for key in rows[0]
-            if all(isinstance(row[key], (int, float)) for row in rows)}
+    mean = view_means(rows, "photo")
     if tiles:
         save_strip(tiles, strip)
     return {"edit": str(edit), "changed_threshold": CHANGED, "photos": rows, "mean": mean,

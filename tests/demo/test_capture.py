@@ -185,10 +185,12 @@ def test_the_capture_measurement_reads_the_edit_at_its_held_out_photos(capture_d
     assert row["edit_psnr_base"] > 20  # two steps move little outside the primitive
 
 
-def test_a_sketch_view_where_the_target_shows_nothing_leaves_the_others_fill_in_the_mean():
+def test_a_view_where_nothing_shows_the_part_leaves_the_others_figures_in_the_mean():
     sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "benchmarks"))
     import capture_measure
 
     rows = [{"view": "a", "ios": 1.0, "fill_shown": 0.5}, {"view": "b", "ios": 0.5, "fill_shown": None}]
     assert capture_measure.view_means(rows) == {"ios": 0.75, "fill_shown": 0.5}
     assert "fill_shown" not in capture_measure.view_means([{"view": "a", "ios": 1.0, "fill_shown": None}])
+    photos = [{"photo": "a", "changed_iou": None, "pixels": 2}, {"photo": "b", "changed_iou": 0.5, "pixels": 4}]
+    assert capture_measure.view_means(photos, "photo") == {"changed_iou": 0.5, "pixels": 3.0}
