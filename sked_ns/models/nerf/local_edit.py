@@ -194,11 +194,18 @@ class LocalEdit:
         weight = self.preservation_weight(positions)
         kept = self._held(weight)
         if isinstance(self.local_field, LocalField):
-            density, _, inside = self.local_field.density(self.base_field, positions)
+            # In chunks, as the base's density: a sampler asks at every sample it marches, and the base's grid read
+            # over all of them at once held GBs (benchmarks/results/memory_ngp_local_field.json).
+            local = self.in_chunks(self._local_field_density, self.local_field, self.base_field)(positions)
+            density, inside = local["density"], local["inside"]
             edited = torch.where(inside, density.to(base.dtype), base)
         else:
             edited = self.local_field.density_at(base, positions, (1.0 - weight).clamp(0.0, 1.0))
         return edited if kept is None else torch.where(kept[..., None], base, edited)
+
+    def _local_field_density(self, positions: Tensor) -> Dict[str, Tensor]:
+        density, _, inside = self.local_field.density(self.base_field, positions)
+        return {"density": density, "inside": inside}
 
     def field_density(self, positions: Tensor, times: Optional[Tensor] = None) -> Tensor:
         """This local edit's field density at positions, without gradient (the next edit's base density)."""
