@@ -18,6 +18,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import json
+import shlex
 import sys
 from pathlib import Path
 
@@ -150,7 +151,7 @@ def main(argv=None) -> None:
             harness.claim("capture_bases.py", arguments.results)
         fit = fit_splat(arguments.data, arguments.nerfacto, arguments.output, arguments.experiment, arguments.steps,
                         arguments.gaussians, arguments.cloud_points, arguments.refine_every)
-        fit["command"] = "python benchmarks/capture_bases.py " + " ".join(map(str, argv or sys.argv[1:]))
+        fit["command"] = shlex.join(["python", "benchmarks/capture_bases.py", *map(str, argv or sys.argv[1:])])
         harness.publish(fit, arguments.results)
 
 

@@ -248,6 +248,8 @@ def plan_coefficients(result: Dict) -> Dict[str, Dict[str, float]]:
     """The memory plan's coefficients (sked_ns/engine/memory_plan.py, STEP_MODELS) from each base kind's smallest
     measured size; its larger sizes are then predictions the plan's test checks. Bytes per ray rendered with
     gradients (splats: per pixel) and per sample of a checkpointed chunk."""
+    from sked_ns.models.nerf.local_field import LOCAL, LOCAL_RESIDUAL
+
     coefficients: Dict[str, Dict[str, float]] = {}
     by_size = sorted(result["steps"].items(), key=lambda item: item[1]["settings"]["guidance_resolution"])
     for key, entry in by_size:
@@ -263,7 +265,7 @@ def plan_coefficients(result: Dict) -> Dict[str, Dict[str, float]]:
         work, weights = entry_work(entry), entry["settings"]["base_weights_gb"] * GB
         rays = (work["rays"] + work["sketch_rays"]) * work["sample_scale"]
         step, held = entry["chunked"]["step_peak_gb"] * GB, entry["chunked"]["held_at_guidance_gb"] * GB
-        if entry["settings"].get("nerf_edit_field") in ("local", "local-residual"):  # its gradients: Adam's moments / 2
+        if entry["settings"].get("nerf_edit_field") in (LOCAL, LOCAL_RESIDUAL):  # its gradients: Adam's moments / 2
             weights = entry["resident_gb"]["optimiser_state"] * GB / 2
         model = {"kept_per_ray": held / rays, "activation_per_ray": 0.0,
                  "activation_per_sample": max(0.0, step - held - weights) / work["chunk"]}

@@ -10,6 +10,7 @@ whole base.
 from __future__ import annotations
 
 import dataclasses
+import functools
 from typing import Dict, List, Optional, Tuple
 
 import numpy as np
@@ -190,22 +191,21 @@ class LocalEdit:
 
     @torch.no_grad()
     def _local_density(self, base_fn, positions: Tensor, times: Optional[Tensor] = None) -> Tensor:
+        # In the field's chunks: a sampler asks at every sample it marches, and the base's grid, the local field and
+        # the preservation weights read over all of them at once grew with the rays (docs/benchmarks.md).
+        return self.in_chunks(functools.partial(self._local_density_at, base_fn), self.local_field,
+                              self.base_field)(positions, times)
+
+    def _local_density_at(self, base_fn, positions: Tensor, times: Optional[Tensor] = None) -> Tensor:
         base = base_fn(positions, times)
         weight = self.preservation_weight(positions)
         kept = self._held(weight)
         if isinstance(self.local_field, LocalField):
-            # In chunks, as the base's density: a sampler asks at every sample it marches, and the base's grid read
-            # over all of them at once held GBs (benchmarks/results/memory_ngp_local_field.json).
-            local = self.in_chunks(self._local_field_density, self.local_field, self.base_field)(positions)
-            density, inside = local["density"], local["inside"]
+            density, _, inside = self.local_field.density(self.base_field, positions)
             edited = torch.where(inside, density.to(base.dtype), base)
         else:
             edited = self.local_field.density_at(base, positions, (1.0 - weight).clamp(0.0, 1.0))
         return edited if kept is None else torch.where(kept[..., None], base, edited)
-
-    def _local_field_density(self, positions: Tensor) -> Dict[str, Tensor]:
-        density, _, inside = self.local_field.density(self.base_field, positions)
-        return {"density": density, "inside": inside}
 
     def field_density(self, positions: Tensor, times: Optional[Tensor] = None) -> Tensor:
         """This local edit's field density at positions, without gradient (the next edit's base density)."""
