@@ -83,8 +83,10 @@ STEP_MODELS: Dict[str, StepModel] = {
 
 LOCAL_STEP_MODELS: Dict[str, StepModel] = {
     # A local field's chunk re-creates its own small grid's and MLPs' activations in the backward pass, not a whole
-    # copy's (memory_nerfacto_local_field.json); unchunked (not measured) and instant-ngp as the whole copy's: above.
+    # copy's (memory_{nerfacto,ngp}_local_field.json); unchunked (not measured) as the whole copy's: above.
     "nerfacto": replace(STEP_MODELS["nerfacto"], kept_per_ray=20506, activation_per_sample=5115),
+    "instant-ngp": replace(STEP_MODELS["instant-ngp"], kept_per_ray=5468, kept_per_sketch_ray=10462,
+                           activation_per_sample=5053),
 }
 """Where a local NeRF edit's step differs from a whole copy's (the plan falls back to STEP_MODELS)."""
 

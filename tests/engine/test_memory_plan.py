@@ -226,24 +226,26 @@ def _resolved(scene, tmp_path, **model):
     return config
 
 
-def test_a_local_edits_step_is_planned_from_its_own_measurement():
+@pytest.mark.parametrize("representation, name", [("nerfacto", "nerfacto"), ("instant-ngp", "ngp")])
+def test_a_local_edits_step_is_planned_from_its_own_measurement(representation, name):
     """A local NeRF edit's step (benchmarks/memory.py --edit-field local) is planned within a quarter with its own
     coefficients, which are that file's; the whole copy's would plan it well above what it holds."""
-    from sked_ns.models.nerf.nerfacto import SkedNerfactoModelConfig
+    from sked_ns.models.registry import representation_named
 
-    result = json.loads((RESULTS.parent / "memory_nerfacto_local_field.json").read_text())
-    options = SkedNerfactoModelConfig(prompt="a hat", nerf_edit_field="local")
-    local = memory_plan.LOCAL_STEP_MODELS["nerfacto"]
-    for name in ("kept_per_ray", "activation_per_sample"):
-        assert getattr(local, name) == pytest.approx(result["plan_coefficients"]["nerfacto"][name], rel=0.01), name
+    result = json.loads((RESULTS.parent / f"memory_{name}_local_field.json").read_text())
+    options = representation_named(representation).sked_config_class()(prompt="a hat", nerf_edit_field="local")
+    local = memory_plan.LOCAL_STEP_MODELS[representation]
+    for key, value in result["plan_coefficients"][representation].items():
+        if key not in ("activation_per_ray", "resident_per_weight_byte"):  # unchunked: not measured; resident: apart
+            assert getattr(local, key) == pytest.approx(value, rel=0.01), key
     for key, entry in result["steps"].items():
         assert entry["settings"]["nerf_edit_field"] == "local", key
         weights = entry["settings"]["base_weights_gb"] * GB
-        trained = memory_plan.trained_bytes("nerfacto", weights, options)
-        step, held = nerf_side("nerfacto", _work(entry), weights, trained, local=True)
+        trained = memory_plan.trained_bytes(representation, weights, options)
+        step, held = nerf_side(representation, _work(entry), weights, trained, local=True)
         _close(step / GB, entry["chunked"]["step_peak_gb"], f"{key} local step")
         _close(held / GB, entry["chunked"]["held_at_guidance_gb"], f"{key} local held at the guidance")
-        whole_copy, _ = nerf_side("nerfacto", _work(entry), weights, trained)
+        whole_copy, _ = nerf_side(representation, _work(entry), weights, trained)
         assert whole_copy > (1 + WITHIN) * entry["chunked"]["step_peak_gb"] * GB, key
 
 
