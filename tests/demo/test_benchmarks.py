@@ -292,6 +292,28 @@ def test_sketch_view_fill_credits_a_correct_edit_that_kept_content_hides():
     assert whole["ios_region_perfect"] > 0.95 and whole["ios_visible"] == 0.0
 
 
+def test_silhouette_rim_splits_the_changed_regions_error_into_rim_and_interior():
+    """A part drawn a pixel too small has all its error on the rim (fill 0 there), one drawn too large none inside the
+    region but on the band around it; rim and interior add up to the region's mean squared error."""
+    import numpy as np
+    import silhouette_rim
+
+    size = 32
+    y, x = np.mgrid[:size, :size]
+    disc = lambda radius: ((x - 15.5) ** 2 + (y - 15.5) ** 2 <= radius ** 2)  # noqa: E731
+    base, part = np.zeros((size, size, 3), np.float32), np.array([1.0, 0.5, 0.0], np.float32)
+    truth = np.where(disc(8)[..., None], part, base)
+    exact = silhouette_rim.view_figures(truth, base, truth, disc(8))
+    assert exact["rim_share"] == 0.0 and exact["interior_share"] == 0.0 and exact["rim_fill"] == pytest.approx(1.0)
+    small = silhouette_rim.view_figures(np.where(disc(7)[..., None], part, base), base, truth, disc(8))
+    assert small["interior_share"] == 0.0 and small["rim_share"] > 0.0 and small["rim_fill"] < 0.5
+    mse = float(((np.where(disc(7)[..., None], part, base) - truth) ** 2).mean(-1)[disc(8)].mean())
+    assert small["rim_share"] + small["interior_share"] == pytest.approx(mse, rel=1e-6)
+    assert small["psnr_changed"] == pytest.approx(-10 * np.log10(mse), rel=1e-6)
+    large = silhouette_rim.view_figures(np.where(disc(9)[..., None], part, base), base, truth, disc(8))
+    assert large["rim_share"] == 0.0 and large["interior_share"] == 0.0 and large["band_error"] > 0.1
+
+
 def test_the_harness_names_each_call_of_a_step_and_restarts_per_step():
     """A step's n-th render is its n-th part (the last name after that), counted afresh after each reset; the
     wrapped method still returns its own result, and unwrapping restores it."""
