@@ -4,6 +4,7 @@
     python benchmarks/edit_quality.py --quick      # one scene, a few iterations (smoke run)
     python benchmarks/edit_quality.py --replot     # the table again from the results JSON
     python benchmarks/edit_quality.py --base splatfacto   # the same edits of Gaussian-splat bases
+    python benchmarks/edit_quality.py --base instant-ngp --scenes hat   # instant-ngp bases of the demo sphere
 
 Scenes: `hat` (the demo sphere's edit, which SKED's defaults were tuned on) and the held-out
 `vase` and `crate` (`sked_ns.demo.scenes.objects`, defined before any tuning), reported apart;
@@ -19,6 +20,9 @@ dataset's evaluation cameras (novel views: none of them is a sketch view) and at
 `--base splatfacto` edits a splatfacto base of each scene instead: `ns-train splatfacto` needs CUDA, so
 it is fitted on the CPU (`sked_ns.demo.splat_base`, SPLAT_FIT, seeded from the scene's surface points as a
 structure-from-motion cloud would be) and saved as `ns-train splatfacto` saves a run; its rows say `splatfacto`.
+`--base instant-ngp` edits an instant-ngp base at the method's own size: `ns-train instant-ngp` needs nerfacc's CUDA
+kernels, so it is fitted on the CPU to the demo sphere's analytic shape and colours (`sked_ns.demo.base`, NGP_FIT
+steps), not to its photos; only the demo sphere's scenes have it; its rows say `instant-ngp`.
 
 Protocols (the paper's 10,000 iterations at 128 px are out of a CPU's reach): `cpu-100` is 100
 iterations, `long` 500, both at 24 px renders with a quarter of the base's samples per ray and
@@ -56,7 +60,9 @@ DEFAULT_SCENES = ("hat", "vase", "crate")
 BASE_ITERATIONS = 400
 BASE_RAYS = 256
 BASE_LOG2_HASHMAP = 15  # nerfacto's default 19 is sized for real scenes; these are 128 px objects
-BASES = ("nerfacto", "splatfacto")
+BASES = ("nerfacto", "splatfacto", "instant-ngp")
+NGP_FIT = 300
+"""The instant-ngp bases' CPU fit steps (sked_ns.demo.base.build_demo_base)."""
 SPLAT_FIT = {"steps": 200, "num_gaussians": 2000}
 """The splat bases' CPU fit (`SplatFit` fields; the rest its defaults)."""
 
@@ -80,6 +86,17 @@ def fit_splat_base(scene: str, data: Path, output: Path, fit: Dict, log: Path) -
         cloud = dataset_point_cloud(data, scene_named(scene).render_base)
         fit_base(data, output, SplatFit(**fit), seed_points=cloud, experiment="splat-base")
         harness.write_results(log, last_fit)
+    return run_dir
+
+
+def fit_ngp_base(scene: str, data: Path, output: Path) -> Path:
+    """An instant-ngp run at the method's own size, fitted on the CPU to the demo sphere (the base of its scenes)."""
+    from sked_ns.demo.base import build_demo_base
+
+    run_dir = output / "demo-base-ngp" / "instant-ngp" / "base"
+    if not (run_dir / "nerfstudio_models").exists():
+        with harness.few_grid_passes(1):  # one pass over the 4 x 128^3 occupancy cells (harness.py says why)
+            build_demo_base(data, output, steps=NGP_FIT, tiny=None, method="instant-ngp")
     return run_dir
 
 
@@ -372,7 +389,8 @@ def _tag(variant: str) -> str:
 
 def _run_tag(base: str, protocol: str, variant: str, seed: Optional[int] = None) -> str:
     """The name of a run's files under --work: splat bases' edits apart from nerfacto's, another seed's apart."""
-    return f"{'splat-' if base == 'splatfacto' else ''}{protocol}-{_tag(variant)}{'' if seed is None else f'-seed{seed}'}"
+    prefix = {"splatfacto": "splat-", "instant-ngp": "ngp-"}.get(base, "")
+    return f"{prefix}{protocol}-{_tag(variant)}{'' if seed is None else f'-seed{seed}'}"
 
 
 def _variant(tag: str) -> str:
@@ -427,7 +445,8 @@ def main() -> None:
     parser.add_argument("--work", type=Path, default=Path("benchmark_work"), help="datasets, bases, edits, logs")
     parser.add_argument("--output", type=Path, default=RESULTS / "edit_quality.json")
     parser.add_argument("--base", choices=BASES, default="nerfacto",
-                        help="the bases edited: nerfacto (ns-train nerfacto on the CPU) or splatfacto (fitted on the CPU)")
+                        help="the bases edited: nerfacto (ns-train nerfacto on the CPU), splatfacto (fitted on the CPU) or "
+                             "instant-ngp (fitted on the CPU to the demo sphere's shape)")
     parser.add_argument("--step-time", metavar="SCENE", default=None,
                         help="only time a CPU edit step of SCENE's splatfacto and nerfacto bases (cpu-100's render size; "
                              "run with OMP_NUM_THREADS=1 for one core); prints JSON")
@@ -470,6 +489,13 @@ def main() -> None:
     done = {(r["scene"], r.get("base", "nerfacto"), r["protocol"], r["variant"], r.get("seed")) for r in results["runs"]}
     seed_flags = [] if args.seed is None else ["--machine.seed", str(args.seed)]
     splat = args.base == "splatfacto"
+    if args.base == "instant-ngp":
+        from sked_ns.demo.scenes import sphere
+
+        if [scene for scene in scenes if scene not in sphere.SCENES]:
+            raise SystemExit(f"error: --base instant-ngp: only the demo sphere's scenes ({', '.join(sphere.SCENES)}) "
+                             f"have an instant-ngp base here; --scenes {','.join(scenes)}")
+        results["ngp_fit"] = NGP_FIT
     if splat:
         results["splat_fit"] = SPLAT_FIT
     for scene in scenes:
@@ -480,6 +506,8 @@ def main() -> None:
         start = time.perf_counter()
         if splat:
             base = fit_splat_base(scene, paths["data"], work / "runs", SPLAT_FIT, work / "splat-base.json")
+        elif args.base == "instant-ngp":
+            base = fit_ngp_base(scene, paths["data"], work / "runs")
         else:
             base = train_base(scene, paths["data"], work / "runs", base_iterations, work / "base.log")
         print(f"{scene}: base ready ({time.perf_counter() - start:.0f} s)", flush=True)
