@@ -89,7 +89,7 @@ def fit_splat_base(scene: str, data: Path, output: Path, fit: Dict, log: Path) -
     return run_dir
 
 
-def fit_ngp_base(scene: str, data: Path, output: Path) -> Path:
+def fit_ngp_base(data: Path, output: Path) -> Path:
     """An instant-ngp run at the method's own size, fitted on the CPU to the demo sphere (the base of its scenes)."""
     from sked_ns.demo.base import build_demo_base
 
@@ -507,7 +507,7 @@ def main() -> None:
         if splat:
             base = fit_splat_base(scene, paths["data"], work / "runs", SPLAT_FIT, work / "splat-base.json")
         elif args.base == "instant-ngp":
-            base = fit_ngp_base(scene, paths["data"], work / "runs")
+            base = fit_ngp_base(paths["data"], work / "runs")
         else:
             base = train_base(scene, paths["data"], work / "runs", base_iterations, work / "base.log")
         print(f"{scene}: base ready ({time.perf_counter() - start:.0f} s)", flush=True)
