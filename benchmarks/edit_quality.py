@@ -474,10 +474,16 @@ def main() -> None:
         protocol = (args.protocols or "cpu-100").split(",")[0]
         print(json.dumps(step_time(args.step_time, work, PROTOCOLS[protocol], protocol), indent=2))
         return
+    scenes = ["hat"] if args.quick else (args.scenes.split(",") if args.scenes else list(DEFAULT_SCENES))
+    if args.base == "instant-ngp":
+        from sked_ns.demo.scenes import sphere
+
+        if [scene for scene in scenes if scene not in sphere.SCENES]:  # before anything is claimed or written
+            raise SystemExit(f"error: --base instant-ngp: only the demo sphere's scenes ({', '.join(sphere.SCENES)}) "
+                             f"have an instant-ngp base here; --scenes {','.join(scenes)}")
     harness.claim("edit_quality.py", args.output, args.work)
     from sked_ns.demo.scenes.catalogue import write_benchmark
 
-    scenes = ["hat"] if args.quick else (args.scenes.split(",") if args.scenes else list(DEFAULT_SCENES))
     protocols = {"quick": {"iterations": 4, "resolution": 16, "samples_per_ray_scale": 0.25}} if args.quick else {
         name: PROTOCOLS[name] for name in (args.protocols or ",".join(DEFAULT_PROTOCOLS)).split(",")}
     variants = ["default"] if args.quick else [_variant(tag) for tag in args.variants.split(",")]
@@ -490,11 +496,6 @@ def main() -> None:
     seed_flags = [] if args.seed is None else ["--machine.seed", str(args.seed)]
     splat = args.base == "splatfacto"
     if args.base == "instant-ngp":
-        from sked_ns.demo.scenes import sphere
-
-        if [scene for scene in scenes if scene not in sphere.SCENES]:
-            raise SystemExit(f"error: --base instant-ngp: only the demo sphere's scenes ({', '.join(sphere.SCENES)}) "
-                             f"have an instant-ngp base here; --scenes {','.join(scenes)}")
         results["ngp_fit"] = NGP_FIT
     if splat:
         results["splat_fit"] = SPLAT_FIT

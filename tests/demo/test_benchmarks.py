@@ -292,6 +292,18 @@ def test_sketch_view_fill_credits_a_correct_edit_that_kept_content_hides():
     assert whole["ios_region_perfect"] > 0.95 and whole["ios_visible"] == 0.0
 
 
+def test_edit_quality_refuses_an_instant_ngp_base_of_a_scene_without_one(tmp_path):
+    """Only the demo sphere's scenes have an instant-ngp base: another is refused in one line, nothing written."""
+    output, work = tmp_path / "results.json", tmp_path / "work"
+    result = subprocess.run([sys.executable, str(BENCHMARKS / "edit_quality.py"), "--base", "instant-ngp", "--scenes",
+                             "hat,vase", "--output", str(output), "--work", str(work)], capture_output=True, text=True,
+                            timeout=300)
+    assert result.returncode != 0 and "Traceback" not in result.stderr
+    lines = [line for line in result.stderr.splitlines() if line.startswith("error:")]
+    assert len(lines) == 1 and "--base instant-ngp" in lines[0] and "hat,vase" in lines[0], result.stderr[-2000:]
+    assert not output.exists() and not work.exists()
+
+
 def test_silhouette_rim_splits_the_changed_regions_error_into_rim_and_interior():
     """A part drawn a pixel too small has all its error on the rim (fill 0 there), one drawn too large none inside the
     region but on the band around it; rim and interior add up to the region's mean squared error."""
