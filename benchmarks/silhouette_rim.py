@@ -26,6 +26,8 @@ import torch
 RING = np.ones((3, 3), np.uint8)
 NOVEL_RESOLUTION = 96
 """edit_quality.py's `--novel-resolution`."""
+MAX_VIEWS = 12
+"""sked-eval's `--max-novel-views` default, which edit_quality.py keeps: the same views it scores."""
 
 
 @torch.no_grad()
@@ -35,9 +37,12 @@ def rim_figures(edit_run: Path, target: Path, resolution: int = NOVEL_RESOLUTION
     from sked_ns.evaluation.render import load_pipeline, render_camera
 
     pipeline = load_pipeline(edit_run)
-    views, _ = choose_novel_views(pipeline, None, target, resolution, 12)
+    views, _ = choose_novel_views(pipeline, None, target, resolution, MAX_VIEWS)
     figures = []
     for view in views:
+        if view.changed is None:
+            raise SystemExit(f"error: {target}: frame {view.name} has no changed_mask_path; the benchmark scenes' targets "
+                             "(edit_quality.py's --work) have one for every frame")
         edit = render_camera(pipeline.model, view.camera)["rgb"].numpy()
         base = render_camera(pipeline.model, view.camera, base=True)["rgb"].numpy()
         figures.append({"view": view.name, **view_figures(edit, base, view.ground_truth.numpy(), view.changed.numpy())})
