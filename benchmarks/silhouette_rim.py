@@ -10,6 +10,10 @@ to the region's mean squared error), and the edit's fill on the rim (its colour'
 the target's: 1 where the rim shows the part as the target does, below 1 where it shows less); outside the region, on
 the one-pixel band around it, the squared error against the target (where an edit that overshoots the silhouette
 shows it; edit_quality counts it as unchanged region). Writes benchmarks/results/silhouette_rim_<scene>.json.
+
+`--final-samples 1 4` renders each edit of a nerfacto base again with its field's samples per ray multiplied by each
+factor (its proposal samples as saved; the edit's folder is not touched): how much of its error is the render's
+sampling rather than what it learnt.
 """
 
 from __future__ import annotations
@@ -31,12 +35,19 @@ MAX_VIEWS = 12
 
 
 @torch.no_grad()
-def rim_figures(edit_run: Path, target: Path, resolution: int = NOVEL_RESOLUTION) -> List[Dict]:
-    """The figures of each of the target's views (module docstring)."""
+def rim_figures(edit_run: Path, target: Path, resolution: int = NOVEL_RESOLUTION, final_samples: int = 1) -> List[Dict]:
+    """The figures of each of the target's views (module docstring), the field sampled `final_samples` times as often
+    along each ray as the edit renders it."""
     from sked_ns.evaluation.evaluate import choose_novel_views
     from sked_ns.evaluation.render import load_pipeline, render_camera
 
     pipeline = load_pipeline(edit_run)
+    sampler = getattr(pipeline.model, "proposal_sampler", None)
+    if final_samples != 1:
+        if sampler is None:
+            raise SystemExit(f"error: --final-samples {final_samples}: {edit_run} is not an edit of a nerfacto base "
+                             "(only a proposal sampler's field samples are counted per ray); leave it at 1")
+        sampler.num_nerf_samples_per_ray *= final_samples  # in memory only: the saved edit is not changed
     views, _ = choose_novel_views(pipeline, None, target, resolution, MAX_VIEWS)
     figures = []
     for view in views:
@@ -70,8 +81,12 @@ def main() -> None:
     parser.add_argument("--work", type=Path, required=True, help="edit_quality.py's --work folder")
     parser.add_argument("--scene", default="hat")
     parser.add_argument("--tags", nargs="+", required=True, help="edit_quality.py's run tags, e.g. long-local-field")
+    parser.add_argument("--final-samples", type=int, nargs="+", default=[1],
+                        help="factors on the field's samples per ray of a nerfacto edit's renders (default 1: as saved)")
     parser.add_argument("--output", type=Path, default=None)
     args = parser.parse_args()
+    if min(args.final_samples) < 1:
+        raise SystemExit(f"error: --final-samples {min(args.final_samples)}: factors are whole numbers >= 1")
     scene_work = args.work / args.scene
     runs = {}
     for tag in args.tags:
@@ -82,13 +97,20 @@ def main() -> None:
         runs[tag] = max(edits.iterdir())
     output = args.output or harness.RESULTS / f"silhouette_rim_{args.scene}.json"
     harness.claim("silhouette_rim.py", output)
+    target = scene_work / "target" / "transforms.json"
+    edits = {}
+    for tag, run in runs.items():
+        for factor in args.final_samples:
+            name = tag if factor == 1 else f"{tag} x{factor} field samples"
+            edits[name] = {"run": str(run), "final_samples": factor, "views": rim_figures(run, target, final_samples=factor)}
     result = {"scene": args.scene, "novel_resolution": NOVEL_RESOLUTION, "environment": harness.environment("cpu"),
-              "edits": {tag: {"run": str(run), "views": rim_figures(run, scene_work / "target" / "transforms.json")}
-                        for tag, run in runs.items()}}
+              "edits": edits}
     harness.write_results(output, result)
-    rows = [(tag, view["view"], f"{view['psnr_changed']:.2f}", f"{view['rim_share']:.5f}",
+    rows = [(name, view["view"], f"{view['psnr_changed']:.2f}", f"{view['rim_share']:.5f}",
              f"{view['interior_share']:.5f}", f"{view['rim_fill']:.3f}", f"{view['band_error']:.4f}")
-            for tag, entry in result["edits"].items() for view in entry["views"]]
+            for name, entry in result["edits"].items() for view in entry["views"]]
+    rows += [(name, "mean of the views", f"{np.mean([v['psnr_changed'] for v in entry['views']]):.2f}", "", "", "", "")
+             for name, entry in result["edits"].items()]
     harness.report(harness.markdown_table(("edit", "view", "changed region vs target (dB)", "rim share of MSE",
                                            "interior share of MSE", "rim fill", "band outside: MSE"), rows), output)
 

@@ -326,6 +326,17 @@ def test_silhouette_rim_splits_the_changed_regions_error_into_rim_and_interior()
     assert large["rim_share"] == 0.0 and large["interior_share"] == 0.0 and large["band_error"] > 0.1
 
 
+def test_silhouette_rim_refuses_a_sample_factor_below_one_before_reading_anything(tmp_path):
+    """--final-samples 0 would render no field samples: one error line naming the flag, nothing read or written."""
+    output = tmp_path / "rim.json"
+    result = subprocess.run([sys.executable, str(BENCHMARKS / "silhouette_rim.py"), "--work", str(tmp_path / "none"),
+                             "--tags", "long-local-field", "--final-samples", "1", "0", "--output", str(output)],
+                            capture_output=True, text=True, timeout=120)
+    lines = [line for line in result.stderr.splitlines() if line.startswith("error:")]
+    assert result.returncode != 0 and len(lines) == 1 and "--final-samples 0" in lines[0], result.stderr[-2000:]
+    assert not output.exists()
+
+
 def test_the_harness_names_each_call_of_a_step_and_restarts_per_step():
     """A step's n-th render is its n-th part (the last name after that), counted afresh after each reset; the
     wrapped method still returns its own result, and unwrapping restores it."""
