@@ -143,35 +143,25 @@ def test_splat_settings_that_edit_too_much_are_warned(name, value):
         warn_unusual_options(SkedNerfactoModelConfig(**{name: value}))
 
 
-def test_field_chunks_below_zero_are_refused_and_tiny_ones_warned():
-    with pytest.raises(SkedOptionError, match="field-chunk -2"):
-        check_options(SkedNerfactoModelConfig(field_chunk=-2))
-    check_options(SkedNerfactoModelConfig(field_chunk=-1))  # the default: the memory plan chooses
-    with pytest.warns(SkedOptionWarning, match="field-chunk 8: chunks this small"):
-        check_options(SkedNerfactoModelConfig(field_chunk=8))
+@pytest.mark.parametrize("name, refused, warned, warning, legal", [
+    ("field_chunk", -2, 8, "field-chunk 8: chunks this small", 0),  # 0: off, the fastest
+    ("base_proposal_grid", -1, 4, "base-proposal-grid 4: a grid this coarse", 0),  # 0: the networks themselves
+    ("hull_proposal_grid", -2, 512, "hull-proposal-grid 512: 134,217,728 log scales", 0),  # 0: 0.9's even hull
+])
+def test_grid_and_chunk_sizes_below_zero_are_refused_and_unusual_ones_warned(name, refused, warned, warning, legal):
+    with pytest.raises(SkedOptionError, match=f"{name.replace('_', '-')} {refused}"):
+        check_options(SkedNerfactoModelConfig(**{name: refused}))
+    with pytest.warns(SkedOptionWarning, match=warning):
+        check_options(SkedNerfactoModelConfig(**{name: warned}))
     with warnings.catch_warnings():
         warnings.simplefilter("error", SkedOptionWarning)
-        check_options(SkedNerfactoModelConfig(field_chunk=0))  # off: legal, the fastest
+        check_options(SkedNerfactoModelConfig(**{name: legal}))
 
 
-def test_base_proposal_grids_below_zero_are_refused_and_coarse_ones_warned():
-    with pytest.raises(SkedOptionError, match="base-proposal-grid -1"):
-        check_options(SkedNerfactoModelConfig(base_proposal_grid=-1))
-    with pytest.warns(SkedOptionWarning, match="base-proposal-grid 4: a grid this coarse"):
-        check_options(SkedNerfactoModelConfig(base_proposal_grid=4))
+def test_the_field_chunks_default_is_legal_and_unwarned():
     with warnings.catch_warnings():
         warnings.simplefilter("error", SkedOptionWarning)
-        check_options(SkedNerfactoModelConfig(base_proposal_grid=0))  # the networks: legal
-
-
-def test_hull_proposal_grids_below_zero_are_refused_and_huge_ones_warned():
-    with pytest.raises(SkedOptionError, match="hull-proposal-grid -2"):
-        check_options(SkedNerfactoModelConfig(hull_proposal_grid=-2))
-    with pytest.warns(SkedOptionWarning, match="hull-proposal-grid 512: 134,217,728 log scales"):
-        check_options(SkedNerfactoModelConfig(hull_proposal_grid=512))
-    with warnings.catch_warnings():
-        warnings.simplefilter("error", SkedOptionWarning)
-        check_options(SkedNerfactoModelConfig(hull_proposal_grid=0))  # 0.9's even hull: legal
+        check_options(SkedNerfactoModelConfig(field_chunk=-1))  # the memory plan chooses
 
 
 EXTREMES = [1e-12, 1e12, 1e3]
