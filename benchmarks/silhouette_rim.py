@@ -12,7 +12,7 @@ the one-pixel band around it, the squared error against the target (where an edi
 shows it; edit_quality counts it as unchanged region). Writes benchmarks/results/silhouette_rim_<scene>.json.
 
 `--final-samples 1 4` renders each edit of a nerfacto base again with its field's samples per ray multiplied by each
-factor (its proposal samples as saved; the edit's folder is not touched): how much of its error is the render's
+factor, in the edit's renders and its base's (the proposal samples as saved; the edit's folder is not touched): how much of its error is the render's
 sampling rather than what it learnt.
 """
 
@@ -35,19 +35,11 @@ MAX_VIEWS = 12
 
 
 @torch.no_grad()
-def rim_figures(edit_run: Path, target: Path, resolution: int = NOVEL_RESOLUTION, final_samples: int = 1) -> List[Dict]:
-    """The figures of each of the target's views (module docstring), the field sampled `final_samples` times as often
-    along each ray as the edit renders it."""
+def rim_figures(pipeline, target: Path, resolution: int = NOVEL_RESOLUTION) -> List[Dict]:
+    """The figures of each of the target's views (module docstring) for a loaded edit."""
     from sked_ns.evaluation.evaluate import choose_novel_views
-    from sked_ns.evaluation.render import load_pipeline, render_camera
+    from sked_ns.evaluation.render import render_camera
 
-    pipeline = load_pipeline(edit_run)
-    sampler = getattr(pipeline.model, "proposal_sampler", None)
-    if final_samples != 1:
-        if sampler is None:
-            raise SystemExit(f"error: --final-samples {final_samples}: {edit_run} is not an edit of a nerfacto base "
-                             "(only a proposal sampler's field samples are counted per ray); leave it at 1")
-        sampler.num_nerf_samples_per_ray *= final_samples  # in memory only: the saved edit is not changed
     views, _ = choose_novel_views(pipeline, None, target, resolution, MAX_VIEWS)
     figures = []
     for view in views:
@@ -58,6 +50,16 @@ def rim_figures(edit_run: Path, target: Path, resolution: int = NOVEL_RESOLUTION
         base = render_camera(pipeline.model, view.camera, base=True)["rgb"].numpy()
         figures.append({"view": view.name, **view_figures(edit, base, view.ground_truth.numpy(), view.changed.numpy())})
     return figures
+
+
+def field_sampler(pipeline, edit_run: Path, factors: List[int]):
+    """The edit's proposal sampler, whose field samples per ray `--final-samples` multiplies; None where every factor
+    is 1. An edit without one (not of a nerfacto base) is refused in one line."""
+    sampler = getattr(pipeline.model, "proposal_sampler", None)
+    if sampler is None and max(factors) > 1:
+        raise SystemExit(f"error: --final-samples {max(factors)}: {edit_run} is not an edit of a nerfacto base (only a "
+                         "proposal sampler's field samples are counted per ray); leave it at 1")
+    return sampler
 
 
 def view_figures(edit: np.ndarray, base: np.ndarray, truth: np.ndarray, changed: np.ndarray) -> Dict:
@@ -95,14 +97,23 @@ def main() -> None:
             raise SystemExit(f"error: --tags {tag}: no edit_quality.py edit at {edits}; run edit_quality.py with "
                              f"--work {args.work} first")
         runs[tag] = max(edits.iterdir())
+    from sked_ns.evaluation.render import load_pipeline
+
+    # Each edit loaded once, and checked, before the results file is claimed.
+    pipelines = {tag: load_pipeline(run) for tag, run in runs.items()}
+    samplers = {tag: field_sampler(pipeline, runs[tag], args.final_samples) for tag, pipeline in pipelines.items()}
     output = args.output or harness.RESULTS / f"silhouette_rim_{args.scene}.json"
     harness.claim("silhouette_rim.py", output)
     target = scene_work / "target" / "transforms.json"
     edits = {}
-    for tag, run in runs.items():
+    for tag, pipeline in pipelines.items():
+        sampler = samplers[tag]
+        saved = None if sampler is None else sampler.num_nerf_samples_per_ray
         for factor in args.final_samples:
+            if sampler is not None:  # in memory only: the saved edit is not changed
+                sampler.num_nerf_samples_per_ray = saved * factor
             name = tag if factor == 1 else f"{tag} x{factor} field samples"
-            edits[name] = {"run": str(run), "final_samples": factor, "views": rim_figures(run, target, final_samples=factor)}
+            edits[name] = {"run": str(runs[tag]), "final_samples": factor, "views": rim_figures(pipeline, target)}
     result = {"scene": args.scene, "novel_resolution": NOVEL_RESOLUTION, "environment": harness.environment("cpu"),
               "edits": edits}
     harness.write_results(output, result)

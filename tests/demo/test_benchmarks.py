@@ -337,6 +337,20 @@ def test_silhouette_rim_refuses_a_sample_factor_below_one_before_reading_anythin
     assert not output.exists()
 
 
+def test_silhouette_rim_multiplies_field_samples_only_where_an_edit_has_a_proposal_sampler():
+    """An edit without a proposal sampler (instant-ngp's) renders as saved at factor 1 and is refused above it."""
+    from types import SimpleNamespace
+
+    import silhouette_rim
+
+    sampler = SimpleNamespace(num_nerf_samples_per_ray=12)
+    nerfacto, ngp = SimpleNamespace(model=SimpleNamespace(proposal_sampler=sampler)), SimpleNamespace(model=object())
+    assert silhouette_rim.field_sampler(nerfacto, Path("edit"), [1, 4]) is sampler
+    assert silhouette_rim.field_sampler(ngp, Path("edit"), [1]) is None
+    with pytest.raises(SystemExit, match=r"^error: --final-samples 4: edit is not an edit of a nerfacto base"):
+        silhouette_rim.field_sampler(ngp, Path("edit"), [1, 4])
+
+
 def test_the_harness_names_each_call_of_a_step_and_restarts_per_step():
     """A step's n-th render is its n-th part (the last name after that), counted afresh after each reset; the
     wrapped method still returns its own result, and unwrapping restores it."""
