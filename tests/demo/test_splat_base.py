@@ -171,6 +171,23 @@ def test_the_48_px_protocols_run_only_when_asked_and_differ_only_in_render_size(
         assert arguments[arguments.index(flag) + 1] == "48"
 
 
+def test_the_preset_sample_protocols_are_long_at_the_presets_samples_per_ray():
+    import sys
+
+    from sked_ns.engine.presets import read_preset
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "benchmarks"))
+    import edit_quality
+
+    for protocol, preset in (("long-1x", "sked"), ("long-0.5x", "sked-fast")):
+        scale = read_preset(preset)["model"]["samples_per_ray_scale"]
+        assert edit_quality.PROTOCOLS[protocol] == {**edit_quality.PROTOCOLS["long"], "samples_per_ray_scale": scale}
+        assert protocol not in edit_quality.DEFAULT_PROTOCOLS
+        paths = {key: Path("/nowhere") / key for key in ("data", "target", "sketches")}
+        arguments = edit_quality.edit_arguments(Path("/base"), paths, "hat", edit_quality.PROTOCOLS[protocol], Path("/out"))
+        assert float(arguments[arguments.index("--pipeline.model.samples-per-ray-scale") + 1]) == scale
+
+
 @pytest.mark.slow
 def test_sked_demo_edits_a_splat_base_and_sked_eval_scores_it(tmp_path):
     """`sked-demo --base splatfacto`: the real `ns-train sked` edit of a CPU-fitted splatfacto run, before/after renders
