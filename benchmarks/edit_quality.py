@@ -27,9 +27,9 @@ steps), not to its photos; only the demo sphere's scenes have it; its rows say `
 Protocols (the paper's 10,000 iterations at 128 px are out of a CPU's reach): `cpu-100` is 100
 iterations, `long` 500, both at 24 px renders with a quarter of the base's samples per ray and
 the presets' warm-up fraction (10%); `cpu-100-48` and `long-48` (run only when asked, reported apart) are
-the same at 48 px renders, `long-1x` and `long-0.5x` (the same) at the `sked` and `sked-fast` presets' samples per
-ray. Figures: novel-view `psnr_keep_gt` of edit and base (vs ground truth) and its drop, `leak`,
-IoS at the sketch views, PSNR against the target inside the changed region. Writes
+the same at 48 px renders, `long-1x` and `long-0.5x` the same at the `sked` and `sked-fast` presets' samples per
+ray, `cpu-100-0.5x` `cpu-100` at `sked-fast`'s. Figures: novel-view `psnr_keep_gt` of edit and base (vs ground truth)
+and its drop, `leak`, IoS at the sketch views, PSNR against the target inside the changed region. Writes
 benchmarks/results/edit_quality.json and prints the README table.
 """
 
@@ -58,7 +58,8 @@ PROTOCOLS = {"cpu-100": {"iterations": 100, "resolution": 24, "samples_per_ray_s
              "long-48": {"iterations": 500, "resolution": 48, "samples_per_ray_scale": 0.25},
              # The presets' own samples per ray: sked's (1x) and sked-fast's (0.5x) (run only when asked, reported apart).
              "long-1x": {"iterations": 500, "resolution": 24, "samples_per_ray_scale": 1.0},
-             "long-0.5x": {"iterations": 500, "resolution": 24, "samples_per_ray_scale": 0.5}}
+             "long-0.5x": {"iterations": 500, "resolution": 24, "samples_per_ray_scale": 0.5},
+             "cpu-100-0.5x": {"iterations": 100, "resolution": 24, "samples_per_ray_scale": 0.5}}
 DEFAULT_PROTOCOLS = ("cpu-100", "long")
 DEFAULT_SCENES = ("hat", "vase", "crate")
 BASE_ITERATIONS = 400

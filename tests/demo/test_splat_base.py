@@ -179,9 +179,10 @@ def test_the_preset_sample_protocols_are_long_at_the_presets_samples_per_ray():
     sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "benchmarks"))
     import edit_quality
 
-    for protocol, preset in (("long-1x", "sked"), ("long-0.5x", "sked-fast")):
+    for protocol, preset in (("long-1x", "sked"), ("long-0.5x", "sked-fast"), ("cpu-100-0.5x", "sked-fast")):
         scale = read_preset(preset)["model"]["samples_per_ray_scale"]
-        assert edit_quality.PROTOCOLS[protocol] == {**edit_quality.PROTOCOLS["long"], "samples_per_ray_scale": scale}
+        short = edit_quality.PROTOCOLS[protocol.rsplit("-", 1)[0]]
+        assert edit_quality.PROTOCOLS[protocol] == {**short, "samples_per_ray_scale": scale}
         assert protocol not in edit_quality.DEFAULT_PROTOCOLS
         paths = {key: Path("/nowhere") / key for key in ("data", "target", "sketches")}
         arguments = edit_quality.edit_arguments(Path("/base"), paths, "hat", edit_quality.PROTOCOLS[protocol], Path("/out"))
