@@ -56,7 +56,7 @@ PROTOCOLS = {"cpu-100": {"iterations": 100, "resolution": 24, "samples_per_ray_s
              # Splat renders are cheap: the same edits at 48 px renders (run only when asked, reported apart).
              "cpu-100-48": {"iterations": 100, "resolution": 48, "samples_per_ray_scale": 0.25},
              "long-48": {"iterations": 500, "resolution": 48, "samples_per_ray_scale": 0.25},
-             # The presets' own samples per ray: sked's (1x) and sked-fast's (0.5x) (run only when asked, reported apart).
+             # The presets' own samples per ray, sked's (1x) and sked-fast's (0.5x): run only when asked, reported apart.
              "long-1x": {"iterations": 500, "resolution": 24, "samples_per_ray_scale": 1.0},
              "long-0.5x": {"iterations": 500, "resolution": 24, "samples_per_ray_scale": 0.5},
              "cpu-100-0.5x": {"iterations": 100, "resolution": 24, "samples_per_ray_scale": 0.5}}

@@ -12,8 +12,8 @@ the one-pixel band around it, the squared error against the target (where an edi
 shows it; edit_quality counts it as unchanged region). Writes benchmarks/results/silhouette_rim_<scene>.json.
 
 `--final-samples 1 4` renders each edit of a nerfacto base again with its field's samples per ray multiplied by each
-factor, in the edit's renders and its base's (the proposal samples as saved; the edit's folder is not touched): how much of its error is the render's
-sampling rather than what it learnt.
+factor, in the edit's renders and its base's (the proposal samples as saved; the edit's folder is not touched): how
+much of its error is the render's sampling rather than what it learnt.
 """
 
 from __future__ import annotations

@@ -171,7 +171,7 @@ def test_the_48_px_protocols_run_only_when_asked_and_differ_only_in_render_size(
         assert arguments[arguments.index(flag) + 1] == "48"
 
 
-def test_the_preset_sample_protocols_are_long_at_the_presets_samples_per_ray():
+def test_the_preset_sample_protocols_are_their_short_protocol_at_the_presets_samples_per_ray():
     import sys
 
     from sked_ns.engine.presets import read_preset
